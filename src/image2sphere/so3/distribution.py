@@ -1,0 +1,171 @@
+"""Probability distributions over SO(3) given by a Fourier signal (flat Wigner layout).
+
+Conventions (SPEC section 1)
+----------------------------
+* The model's signal ``f`` (logits) is evaluated on the HEALPix SO(3) grid of a level and put
+  through a softmax: ``p_i = softmax(f(R_i))`` over the ``N`` grid points.
+* The density at ``R`` w.r.t. the Haar measure normalised to total volume ``pi^2`` (IPDF's
+  convention) is ``p_nearest(R) * N / pi^2``; a uniform distribution has log density
+  ``-log(pi^2) = -2.2894``.
+* Grid values and indices are in pixel-major order (:mod:`image2sphere.so3.grid`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from e3nn import o3
+
+from image2sphere.so3.grid import (
+    check_level,
+    so3_grid_size,
+    so3_healpix_index_to_matrix,
+    so3_healpix_nearest_index,
+)
+from image2sphere.so3.grid_eval import get_grid_evaluator
+from image2sphere.so3.rotations import check_rotation_matrix, matrix_to_angles, rotvec_to_matrix
+from image2sphere.so3.wigner import check_lmax, flat_wigner, n_so3_coeffs, wigner_D
+
+__all__ = ["LOG_UNIFORM_DENSITY", "SO3Distribution"]
+
+LOG_UNIFORM_DENSITY = -math.log(math.pi**2)  # -2.2894
+
+
+class SO3Distribution:
+    """A batch of distributions over SO(3) given by Fourier coefficients.
+
+    Args:
+        coeffs: ``(B, n_so3_coeffs(lmax))`` in the flat Wigner layout (the network's output).
+        lmax: the band limit.
+    """
+
+    def __init__(self, coeffs: torch.Tensor, lmax: int):
+        self.lmax = check_lmax(lmax)
+        n = n_so3_coeffs(self.lmax)
+        if not isinstance(coeffs, torch.Tensor) or coeffs.ndim != 2 or coeffs.shape[1] != n:
+            shape = tuple(coeffs.shape) if isinstance(coeffs, torch.Tensor) else type(coeffs).__name__
+            raise ValueError(f"coeffs must have shape (batch, {n}) for lmax={self.lmax}, got {shape}")
+        if not coeffs.is_floating_point():
+            raise ValueError(f"coeffs must be floating point, got {coeffs.dtype}")
+        self.coeffs = coeffs
+
+    @property
+    def batch_size(self) -> int:
+        return self.coeffs.shape[0]
+
+    def _evaluator(self, level: int):
+        return get_grid_evaluator(self.lmax, check_level(level), self.coeffs.dtype, self.coeffs.device)
+
+    def _check_query(self, rotations: torch.Tensor) -> torch.Tensor:
+        check_rotation_matrix(rotations, "rotations")
+        if rotations.ndim == 4 and rotations.shape[0] != self.batch_size:
+            raise ValueError(
+                f"rotations of shape (B, K, 3, 3) must have B = batch size {self.batch_size}, "
+                f"got {tuple(rotations.shape)}"
+            )
+        if rotations.ndim not in (3, 4):
+            raise ValueError(f"rotations must have shape (B, K, 3, 3) or (K, 3, 3), got {tuple(rotations.shape)}")
+        return rotations.to(self.coeffs.dtype)
+
+    # ------------------------------------------------------------------ values
+    def logits(self, rotations: torch.Tensor) -> torch.Tensor:
+        """Signal at arbitrary rotations ``(B, K, 3, 3)`` or ``(K, 3, 3)`` (shared): ``(B, K)``."""
+        rotations = self._check_query(rotations)
+        D = flat_wigner(self.lmax, rotations)  # [(B,) K, n]
+        if rotations.ndim == 3:
+            return torch.einsum("kn,bn->bk", D, self.coeffs)
+        return torch.einsum("bkn,bn->bk", D, self.coeffs)
+
+    def grid_logits(self, level: int) -> torch.Tensor:
+        """Signal on the whole grid of ``level``: ``(B, 72 * 8**level)``, pixel-major."""
+        return self._evaluator(level).logits(self.coeffs)
+
+    def log_prob_grid(self, level: int) -> torch.Tensor:
+        """Log-softmax of the signal over the grid: ``(B, N)``."""
+        return torch.log_softmax(self.grid_logits(level), dim=-1)
+
+    def log_normalizer(self, level: int) -> torch.Tensor:
+        """``logsumexp`` of the signal over the grid, ``(B,)``, streamed (no ``(B, N)`` tensor)."""
+        return self._evaluator(level).logsumexp(self.coeffs)
+
+    def log_prob_at_index(self, index: torch.Tensor, level: int) -> torch.Tensor:
+        """``log p_i`` at grid indices ``(B, K)`` or ``(K,)``: ``(B, K)``, streamed."""
+        ev = self._evaluator(level)
+        return ev.logits_at(self.coeffs, index) - ev.logsumexp(self.coeffs)[:, None]
+
+    def log_density(self, rotations: torch.Tensor, level: int) -> torch.Tensor:
+        """Log density (Haar measure of volume pi^2) at rotations ``(B, K, 3, 3)`` or ``(K, 3, 3)``: ``(B, K)``.
+
+        Read at the grid point nearest each rotation: ``log(p_nearest * N / pi^2)``.
+        """
+        rotations = self._check_query(rotations)
+        index = so3_healpix_nearest_index(rotations, level).to(self.coeffs.device)  # [(B,) K]
+        n_points = math.prod(so3_grid_size(level))
+        return self.log_prob_at_index(index, level) + math.log(n_points) + LOG_UNIFORM_DENSITY
+
+    # ------------------------------------------------------------------ point estimate and samples
+    def mode(self, level: int, refine: bool = False, steps: int = 100, lr: float | None = None) -> torch.Tensor:
+        """Most likely rotation ``(B, 3, 3)``: the grid argmax, optionally refined.
+
+        With ``refine=True`` the rotation ``R0 @ exp(w)`` is moved by gradient ascent on the
+        band-limited signal itself (Adam on ``w``, learning rate decayed linearly over ``steps``;
+        default ``lr`` is a tenth of the grid spacing), so the estimate is no longer tied to the grid.
+        """
+        ev = self._evaluator(level)
+        with torch.no_grad():
+            _, _, index = ev.logsumexp_and_max(self.coeffs.detach())
+        R0 = so3_healpix_index_to_matrix(index, level, dtype=self.coeffs.dtype)
+        if not refine:
+            return R0
+        spacing = 2 * math.pi / so3_grid_size(level)[1]
+        return self._refine(R0, steps, lr if lr is not None else spacing / 10)
+
+    def _refine(self, R0: torch.Tensor, steps: int, lr: float) -> torch.Tensor:
+        coeffs = self.coeffs.detach()
+        with torch.no_grad():
+            angles = matrix_to_angles(R0)
+            blocks = []  # per l: (D^l(R0) [B, d, d], generators X^l [3, d, d], coefficients [B, d, d])
+            offset = 0
+            for l in range(self.lmax + 1):
+                d = 2 * l + 1
+                c = coeffs[:, offset : offset + d * d].reshape(-1, d, d) * math.sqrt(d)
+                X = o3.so3_generators(l).to(coeffs)
+                blocks.append((wigner_D(l, *angles), X, c))
+                offset += d * d
+        w = torch.zeros(R0.shape[0], 3, dtype=coeffs.dtype, device=coeffs.device, requires_grad=True)
+        optimizer = torch.optim.Adam([w], lr=lr)
+        schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda k: 1 - k / steps)
+        with torch.enable_grad():
+            for _ in range(steps):
+                optimizer.zero_grad()
+                f = 0.0
+                for D0, X, c in blocks:
+                    D = D0 @ torch.linalg.matrix_exp(torch.einsum("bi,ijk->bjk", w, X))  # D^l(R0 exp(w))
+                    f = f + (c * D).sum(dim=(-1, -2))  # [B]
+                (-f.sum()).backward()
+                optimizer.step()
+                schedule.step()
+        return (R0 @ rotvec_to_matrix(w.detach())).detach()
+
+    def sample(
+        self, n: int, level: int, generator: torch.Generator | None = None, return_index: bool = False
+    ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        """``n`` grid rotations per distribution, ``(B, n, 3, 3)``, drawn from the grid softmax.
+
+        Exact and streamed: a pixel is drawn from the gamma-marginal, then gamma given the pixel.
+        With ``return_index`` also the flat grid indices ``(B, n)``.
+        """
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise ValueError(f"n must be a positive integer, got {n!r}")
+        ev = self._evaluator(level)
+        with torch.no_grad():
+            coeffs = self.coeffs.detach()
+            pix_logits = ev.pixel_logsumexp(coeffs)  # [B, P]
+            pix = torch.multinomial(torch.softmax(pix_logits, -1), n, replacement=True, generator=generator)
+            gamma_logits = ev.gamma_logits(coeffs, pix)  # [B, n, G]
+            probs = torch.softmax(gamma_logits, -1).reshape(-1, ev.n_gamma)
+            k = torch.multinomial(probs, 1, generator=generator).reshape(pix.shape)
+            index = pix * ev.n_gamma + k  # [B, n]
+        rotations = so3_healpix_index_to_matrix(index, level, dtype=self.coeffs.dtype)
+        return (rotations, index) if return_index else rotations

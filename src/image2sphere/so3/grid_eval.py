@@ -1,0 +1,259 @@
+"""Evaluation of SO(3) Fourier signals on the HEALPix SO(3) grid without a dense Wigner matrix.
+
+Conventions: flat Wigner layout (:mod:`image2sphere.so3.wigner`), pixel-major grid order
+(:mod:`image2sphere.so3.grid`): flat index ``p * n_gamma + k``.
+
+Method
+------
+On the grid, ``D^l(alpha, beta, gamma) = A^l(alpha, beta) @ Ry^l(gamma)`` with
+``A^l = D^l(alpha, beta, 0)``. In e3nn's real basis ``Ry^l(gamma)`` only has the entries
+``Ry[n, n] = cos((n - l) gamma)`` and ``Ry[2l - n, n] = sin((n - l) gamma)`` (indices ``0..2l``).
+So a coefficient ``c^l[m, n]`` contributes
+
+    c^l[m, n] * sqrt(2l+1) * (A[m, n] cos(t gamma) + sign(n - l) A[m, 2l - n] sin(t gamma)),  t = |n - l|
+
+and on each pixel the signal is a trigonometric polynomial of degree lmax in gamma:
+
+    f(p, gamma) = a_0(p) + sum_{t=1..lmax} a_t(p) cos(t gamma) + b_t(p) sin(t gamma).
+
+Stage 1: for each frequency t, one GEMM ``c[:, I_t] @ W_t`` gives ``(a_t, b_t)`` on all pixels
+(``I_t``: the coefficients with ``|n - l| = t``; ``W_t``: their weights per pixel).
+Stage 2: one matmul with the ``(2 lmax + 1, n_gamma)`` trigonometric basis gives every gamma.
+
+The operator holds ``(2 n_coeffs - (lmax+1)^2) * n_pixels`` numbers: 861 per pixel for lmax 6,
+i.e. ``861 / (455 * n_gamma)`` of the dense matrix (1/101 at level 5). Reductions that need one
+number per image stream over pixel chunks, so their memory does not grow with the grid.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import torch
+from image2sphere.so3.grid import check_level, s2_healpix_grid, so3_grid_size, so3_healpix_grid_angles
+from image2sphere.so3.wigner import (
+    check_lmax,
+    flat_wigner_from_angles,
+    n_s2_coeffs,
+    n_so3_coeffs,
+    so3_layout,
+    wigner_D,
+)
+
+__all__ = [
+    "MAX_OPERATOR_BYTES",
+    "MAX_OUTPUT_BYTES",
+    "HealpixGridEvaluator",
+    "dense_grid_logits",
+    "get_grid_evaluator",
+]
+
+MAX_OPERATOR_BYTES = 4 * 2**30  # refuse to build operators larger than this
+MAX_OUTPUT_BYTES = 4 * 2**30  # refuse to materialise full-grid outputs larger than this
+_CHUNK_ELEMENTS = 2**23  # elements of one streamed [batch, pixels, gammas] block (32 MiB float32)
+
+
+def _operator_numel(lmax: int, n_pix: int) -> int:
+    return (2 * n_so3_coeffs(lmax) - n_s2_coeffs(lmax)) * n_pix
+
+
+class HealpixGridEvaluator:
+    """Evaluates batches of SO(3) signals (flat Wigner layout) on the level-``level`` HEALPix grid.
+
+    Build it with :func:`get_grid_evaluator` (cached per lmax, level, dtype, device). All methods
+    take ``coeffs`` of shape ``(B, n_so3_coeffs(lmax))`` and are differentiable.
+    """
+
+    def __init__(
+        self,
+        lmax: int,
+        level: int,
+        dtype: torch.dtype = torch.float32,
+        device: torch.device | str = "cpu",
+        max_operator_bytes: int = MAX_OPERATOR_BYTES,
+    ):
+        self.lmax = check_lmax(lmax)
+        self.level = check_level(level)
+        self.n_pix, self.n_gamma = so3_grid_size(level)
+        self.n_points = self.n_pix * self.n_gamma
+        self.dtype, self.device = dtype, torch.device(device)
+        nbytes = _operator_numel(lmax, self.n_pix) * torch.finfo(dtype).bits // 8
+        if nbytes > max_operator_bytes:
+            raise ValueError(
+                f"the grid operator for lmax={lmax}, level={level} needs {nbytes / 2**30:.1f} GiB, more than "
+                f"max_operator_bytes={max_operator_bytes / 2**30:.1f} GiB; use a lower grid level"
+            )
+        alpha, beta = s2_healpix_grid(level, dtype=torch.float64)  # [P]
+        l_of, m_of, n_of = so3_layout(lmax)
+        freq = (n_of - l_of).abs()  # [n_coeffs]
+        sign = torch.sign(n_of - l_of).to(torch.float64)
+        # weights of every coefficient for its cos and sin term on every pixel  [n_coeffs, P]
+        w_cos = torch.empty(len(l_of), self.n_pix, dtype=torch.float64)
+        w_sin = torch.empty_like(w_cos)
+        offset = 0
+        for l in range(lmax + 1):
+            A = math.sqrt(2 * l + 1) * wigner_D(l, alpha, beta, torch.zeros_like(alpha))  # [P, 2l+1, 2l+1]
+            size = (2 * l + 1) ** 2
+            m, n = m_of[offset : offset + size], n_of[offset : offset + size]
+            w_cos[offset : offset + size] = A[:, m, n].T
+            w_sin[offset : offset + size] = (sign[offset : offset + size, None] * A[:, m, 2 * l - n].T)
+            offset += size
+        self._index: list[torch.Tensor] = []  # I_t  [n_t]
+        self._weights: list[torch.Tensor] = []  # W_t  [n_t, P, 1 or 2] (cos, sin)
+        for t in range(lmax + 1):
+            idx = torch.nonzero(freq == t).squeeze(1)
+            W = w_cos[idx, :, None] if t == 0 else torch.stack([w_cos[idx], w_sin[idx]], dim=-1)
+            self._index.append(idx.to(self.device))
+            self._weights.append(W.to(device=self.device, dtype=dtype).contiguous())
+        gamma = torch.arange(self.n_gamma, dtype=torch.float64) * (2 * math.pi / self.n_gamma)
+        rows = [torch.ones_like(gamma)]
+        for t in range(1, lmax + 1):
+            rows += [torch.cos(t * gamma), torch.sin(t * gamma)]
+        self._basis = torch.stack(rows).to(device=self.device, dtype=dtype)  # [2L+1, G]
+
+    @property
+    def operator_bytes(self) -> int:
+        return sum(W.numel() * W.element_size() for W in self._weights) + self._basis.numel() * 4
+
+    # ------------------------------------------------------------------ helpers
+    def _check(self, coeffs: torch.Tensor) -> torch.Tensor:
+        n = n_so3_coeffs(self.lmax)
+        if coeffs.ndim != 2 or coeffs.shape[1] != n:
+            raise ValueError(f"coeffs must have shape (batch, {n}) for lmax={self.lmax}, got {tuple(coeffs.shape)}")
+        if coeffs.dtype != self.dtype or coeffs.device != self.device:
+            raise ValueError(
+                f"coeffs are {coeffs.dtype} on {coeffs.device} but this evaluator is {self.dtype} on "
+                f"{self.device}; use get_grid_evaluator(lmax, level, dtype, device)"
+            )
+        return coeffs
+
+    def _gathered(self, coeffs: torch.Tensor) -> list[torch.Tensor]:
+        return [coeffs[:, idx] for idx in self._index]  # [B, n_t] each
+
+    def _trig(self, gathered: list[torch.Tensor], p0: int, p1: int) -> torch.Tensor:
+        """Trigonometric coefficients ``(a_0, a_1, b_1, ..., a_L, b_L)`` on pixels ``p0:p1``: ``[B, Pc, 2L+1]``."""
+        B, Pc = gathered[0].shape[0], p1 - p0
+        T = gathered[0].new_empty(B, Pc, 2 * self.lmax + 1)
+        for t, (c_t, W) in enumerate(zip(gathered, self._weights)):
+            W = W[:, p0:p1]  # [n_t, Pc, k]
+            out = c_t @ W.reshape(W.shape[0], -1)  # [B, Pc * k]
+            if t == 0:
+                T[:, :, 0] = out
+            else:
+                T[:, :, 2 * t - 1 : 2 * t + 1] = out.view(B, Pc, 2)
+        return T
+
+    def _chunks(self, batch: int, chunk_pixels: int | None):
+        step = chunk_pixels or max(1, _CHUNK_ELEMENTS // max(1, batch * self.n_gamma))
+        for p0 in range(0, self.n_pix, step):
+            yield p0, min(self.n_pix, p0 + step)
+
+    # ------------------------------------------------------------------ full grid
+    def logits(self, coeffs: torch.Tensor, max_output_bytes: int = MAX_OUTPUT_BYTES) -> torch.Tensor:
+        """Signal on every grid point: ``(B, N)`` in pixel-major order."""
+        coeffs = self._check(coeffs)
+        B = coeffs.shape[0]
+        nbytes = B * self.n_points * coeffs.element_size()
+        if nbytes > max_output_bytes:
+            raise ValueError(
+                f"full-grid logits for batch {B} at level {self.level} need {nbytes / 2**30:.1f} GiB "
+                f"(> max_output_bytes={max_output_bytes / 2**30:.1f} GiB); use the streamed reductions "
+                "(logsumexp, max, logits_at) or a smaller batch"
+            )
+        T = self._trig(self._gathered(coeffs), 0, self.n_pix)  # [B, P, 2L+1]
+        return (T @ self._basis).reshape(B, self.n_points)  # [B, P, G] -> [B, N]
+
+    def pixel_logsumexp(self, coeffs: torch.Tensor, chunk_pixels: int | None = None) -> torch.Tensor:
+        """``logsumexp`` over the gamma fibre of every pixel: ``(B, P)`` (the S2 marginal, unnormalised)."""
+        coeffs = self._check(coeffs)
+        g = self._gathered(coeffs)
+        parts = [torch.logsumexp(self._trig(g, p0, p1) @ self._basis, dim=-1) for p0, p1 in self._chunks(len(coeffs), chunk_pixels)]
+        return torch.cat(parts, dim=1)
+
+    # ------------------------------------------------------------------ streamed reductions
+    def logsumexp_and_max(
+        self, coeffs: torch.Tensor, chunk_pixels: int | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One streamed pass: ``(logsumexp (B,), max value (B,), argmax index (B,))`` over the grid."""
+        coeffs = self._check(coeffs)
+        g = self._gathered(coeffs)
+        lse, vals, idxs = [], [], []
+        for p0, p1 in self._chunks(len(coeffs), chunk_pixels):
+            x = (self._trig(g, p0, p1) @ self._basis).flatten(1)  # [B, Pc * G]
+            lse.append(torch.logsumexp(x, dim=1))
+            v, i = x.max(dim=1)
+            vals.append(v)
+            idxs.append(i + p0 * self.n_gamma)
+        vals_t = torch.stack(vals, dim=1)  # [B, chunks]
+        best = vals_t.argmax(dim=1, keepdim=True)
+        index = torch.stack(idxs, dim=1).gather(1, best).squeeze(1)
+        return torch.logsumexp(torch.stack(lse, dim=1), dim=1), vals_t.gather(1, best).squeeze(1), index
+
+    def logsumexp(self, coeffs: torch.Tensor, chunk_pixels: int | None = None) -> torch.Tensor:
+        """``logsumexp`` of the signal over the grid, ``(B,)``, streamed."""
+        coeffs = self._check(coeffs)
+        g = self._gathered(coeffs)
+        parts = [
+            torch.logsumexp((self._trig(g, p0, p1) @ self._basis).flatten(1), dim=1)
+            for p0, p1 in self._chunks(len(coeffs), chunk_pixels)
+        ]
+        return torch.logsumexp(torch.stack(parts, dim=1), dim=1)
+
+    def logits_at(self, coeffs: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+        """Signal at grid indices ``index`` ``(B, K)`` (or ``(K,)`` shared by the batch): ``(B, K)``."""
+        coeffs = self._check(coeffs)
+        B = coeffs.shape[0]
+        index = torch.as_tensor(index, device=self.device)
+        if index.ndim == 1:
+            index = index[None].expand(B, -1)
+        if index.ndim != 2 or index.shape[0] != B or index.is_floating_point():
+            raise ValueError(f"index must be integer (K,) or ({B}, K), got {tuple(index.shape)} {index.dtype}")
+        if ((index < 0) | (index >= self.n_points)).any():
+            raise ValueError(f"grid indices must lie in [0, {self.n_points}) for level {self.level}")
+        pix, k = index // self.n_gamma, index % self.n_gamma  # [B, K]
+        T = self._trig_at(coeffs, pix)  # [B, K, 2L+1]
+        basis = self._basis[:, k].permute(1, 2, 0)  # [B, K, 2L+1]
+        return (T * basis).sum(-1)
+
+    def gamma_logits(self, coeffs: torch.Tensor, pix: torch.Tensor) -> torch.Tensor:
+        """Signal on the whole gamma fibre of pixels ``pix`` ``(B, K)``: ``(B, K, n_gamma)``."""
+        coeffs = self._check(coeffs)
+        return self._trig_at(coeffs, torch.as_tensor(pix, device=self.device)) @ self._basis
+
+    def _trig_at(self, coeffs: torch.Tensor, pix: torch.Tensor) -> torch.Tensor:
+        B, K = pix.shape
+        T = coeffs.new_empty(B, K, 2 * self.lmax + 1)
+        for t, (c_t, W) in enumerate(zip(self._gathered(coeffs), self._weights)):
+            Wp = W[:, pix]  # [n_t, B, K, k]
+            out = torch.einsum("bi,ibkc->bkc", c_t, Wp)  # [B, K, k]
+            if t == 0:
+                T[:, :, 0] = out[..., 0]
+            else:
+                T[:, :, 2 * t - 1 : 2 * t + 1] = out
+        return T
+
+
+@lru_cache(maxsize=16)
+def _cached(lmax: int, level: int, dtype: torch.dtype, device: str) -> HealpixGridEvaluator:
+    return HealpixGridEvaluator(lmax, level, dtype=dtype, device=device)
+
+
+def get_grid_evaluator(
+    lmax: int, level: int, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu"
+) -> HealpixGridEvaluator:
+    """The evaluator for ``(lmax, level)`` on ``device`` in ``dtype``, built once per process."""
+    device = torch.device(device)
+    if device.type == "cuda" and device.index is None:
+        device = torch.device("cuda", torch.cuda.current_device())
+    return _cached(check_lmax(lmax), check_level(level), dtype, str(device))
+
+
+def dense_grid_logits(coeffs: torch.Tensor, lmax: int, level: int) -> torch.Tensor:
+    """Reference: ``coeffs @ flat_wigner(grid).T`` with the dense ``(N, n_coeffs)`` Wigner matrix, ``(B, N)``.
+
+    Only for tests and benchmarks: at level 5 the matrix is 4.3 GB.
+    """
+    alpha, beta, gamma = so3_healpix_grid_angles(level, dtype=torch.float64)
+    D = flat_wigner_from_angles(lmax, alpha, beta, gamma).to(device=coeffs.device, dtype=coeffs.dtype)  # [N, n]
+    return coeffs @ D.T

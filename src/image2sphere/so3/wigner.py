@@ -1,0 +1,120 @@
+"""Wigner D-matrices in the flat layout used for SO(3) signals.
+
+Conventions (SPEC section 1)
+----------------------------
+* ``D^l = e3nn.o3.wigner_D(l, alpha, beta, gamma)`` with YXY angles of the rotation, real basis.
+* Flat layout: for ``l = 0..lmax`` the ``(2l+1)^2`` entries of a matrix ``c^l`` in row-major
+  order ``(m, n)``, concatenated. A signal with coefficients ``c`` is
+  ``f(R) = sum_l sqrt(2l+1) sum_{m,n} c^l[m,n] D^l(R)[m,n] = flat_wigner(lmax, R) @ c``.
+* S2 signals: e3nn real spherical harmonics, ``normalization="component"``, ``(lmax+1)^2``
+  coefficients ordered by l then m.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from functools import lru_cache
+
+import torch
+from e3nn import o3
+
+from image2sphere.so3.rotations import check_rotation_matrix, matrix_to_angles
+
+__all__ = [
+    "check_lmax",
+    "flat_wigner",
+    "flat_wigner_from_angles",
+    "lmax_from_n_so3_coeffs",
+    "n_s2_coeffs",
+    "n_so3_coeffs",
+    "so3_layout",
+    "wigner_D",
+]
+
+
+def check_lmax(lmax, name: str = "lmax") -> int:
+    """Return ``lmax`` as an int, or raise ``ValueError`` if it is not a non-negative integer."""
+    if isinstance(lmax, bool) or not isinstance(lmax, int) or lmax < 0:
+        raise ValueError(f"{name} must be a non-negative integer, got {lmax!r}")
+    return lmax
+
+
+def n_so3_coeffs(lmax: int) -> int:
+    """Number of flat Wigner coefficients: ``sum_l (2l+1)^2 = (lmax+1)(2lmax+1)(2lmax+3)/3``."""
+    lmax = check_lmax(lmax)
+    return (lmax + 1) * (2 * lmax + 1) * (2 * lmax + 3) // 3
+
+
+def n_s2_coeffs(lmax: int) -> int:
+    """Number of real spherical-harmonic coefficients up to ``lmax``: ``(lmax+1)^2``."""
+    return (check_lmax(lmax) + 1) ** 2
+
+
+def lmax_from_n_so3_coeffs(n: int) -> int:
+    """Inverse of :func:`n_so3_coeffs`; ``ValueError`` if ``n`` is not such a number."""
+    lmax = 0
+    while n_so3_coeffs(lmax) < n:
+        lmax += 1
+    if n_so3_coeffs(lmax) != n:
+        raise ValueError(f"{n} is not a valid number of SO(3) coefficients (455 for lmax 6, 165 for lmax 4)")
+    return lmax
+
+
+@lru_cache(maxsize=32)
+def so3_layout(lmax: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(l, m, n)`` of every flat position, each a long tensor ``(n_so3_coeffs,)``.
+
+    ``m`` and ``n`` are matrix indices in ``0..2l``, i.e. order ``-l..l`` shifted by ``l``.
+    """
+    ls, ms, ns = [], [], []
+    for l in range(check_lmax(lmax) + 1):
+        idx = torch.arange(2 * l + 1)
+        mm, nn_ = torch.meshgrid(idx, idx, indexing="ij")
+        ls.append(torch.full(((2 * l + 1) ** 2,), l))
+        ms.append(mm.reshape(-1))
+        ns.append(nn_.reshape(-1))
+    return torch.cat(ls), torch.cat(ms), torch.cat(ns)
+
+
+@contextlib.contextmanager
+def default_dtype(dtype: torch.dtype):
+    """Temporarily set torch's default dtype.
+
+    e3nn builds its Lie-algebra generators (hence ``wigner_D``) in the default dtype, so float64
+    Wigner matrices are only float64-accurate when built under ``default_dtype(torch.float64)``.
+    """
+    previous = torch.get_default_dtype()
+    torch.set_default_dtype(dtype)
+    try:
+        yield
+    finally:
+        torch.set_default_dtype(previous)
+
+
+def wigner_D(l: int, alpha: torch.Tensor, beta: torch.Tensor, gamma: torch.Tensor) -> torch.Tensor:
+    """``e3nn.o3.wigner_D`` computed at the precision of ``alpha`` (float64 stays float64-accurate)."""
+    dtype = torch.promote_types(alpha.dtype, torch.float32)
+    with default_dtype(torch.float64 if dtype == torch.float64 else torch.get_default_dtype()):
+        return o3.wigner_D(l, alpha, beta, gamma).to(dtype)
+
+
+def flat_wigner_from_angles(lmax: int, alpha: torch.Tensor, beta: torch.Tensor, gamma: torch.Tensor) -> torch.Tensor:
+    """``sqrt(2l+1) D^l(alpha, beta, gamma)`` flattened and concatenated: ``(..., n_so3_coeffs)``."""
+    lmax = check_lmax(lmax)
+    alpha, beta, gamma = torch.broadcast_tensors(alpha, beta, gamma)
+    blocks = [
+        math.sqrt(2 * l + 1) * wigner_D(l, alpha, beta, gamma).flatten(-2)  # [..., (2l+1)^2]
+        for l in range(lmax + 1)
+    ]
+    return torch.cat(blocks, dim=-1)
+
+
+def flat_wigner(lmax: int, rotations: torch.Tensor) -> torch.Tensor:
+    """Flat Wigner layout of rotations ``(..., 3, 3)`` -> ``(..., n_so3_coeffs)``.
+
+    ``flat_wigner(lmax, R) @ c`` evaluates the SO(3) signal with coefficients ``c`` at ``R``.
+    """
+    lmax = check_lmax(lmax)
+    check_rotation_matrix(rotations)
+    return flat_wigner_from_angles(lmax, *matrix_to_angles(rotations))

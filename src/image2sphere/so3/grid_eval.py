@@ -31,6 +31,7 @@ import math
 from functools import lru_cache
 
 import torch
+
 from image2sphere.so3.grid import check_level, s2_healpix_grid, so3_grid_size, so3_healpix_grid_angles
 from image2sphere.so3.wigner import (
     check_lmax,
@@ -97,7 +98,7 @@ class HealpixGridEvaluator:
             size = (2 * l + 1) ** 2
             m, n = m_of[offset : offset + size], n_of[offset : offset + size]
             w_cos[offset : offset + size] = A[:, m, n].T
-            w_sin[offset : offset + size] = (sign[offset : offset + size, None] * A[:, m, 2 * l - n].T)
+            w_sin[offset : offset + size] = sign[offset : offset + size, None] * A[:, m, 2 * l - n].T
             offset += size
         self._index: list[torch.Tensor] = []  # I_t  [n_t]
         self._weights: list[torch.Tensor] = []  # W_t  [n_t, P, 1 or 2] (cos, sin)
@@ -135,7 +136,7 @@ class HealpixGridEvaluator:
         """Trigonometric coefficients ``(a_0, a_1, b_1, ..., a_L, b_L)`` on pixels ``p0:p1``: ``[B, Pc, 2L+1]``."""
         B, Pc = gathered[0].shape[0], p1 - p0
         T = gathered[0].new_empty(B, Pc, 2 * self.lmax + 1)
-        for t, (c_t, W) in enumerate(zip(gathered, self._weights)):
+        for t, (c_t, W) in enumerate(zip(gathered, self._weights, strict=True)):
             W = W[:, p0:p1]  # [n_t, Pc, k]
             out = c_t @ W.reshape(W.shape[0], -1)  # [B, Pc * k]
             if t == 0:
@@ -168,7 +169,10 @@ class HealpixGridEvaluator:
         """``logsumexp`` over the gamma fibre of every pixel: ``(B, P)`` (the S2 marginal, unnormalised)."""
         coeffs = self._check(coeffs)
         g = self._gathered(coeffs)
-        parts = [torch.logsumexp(self._trig(g, p0, p1) @ self._basis, dim=-1) for p0, p1 in self._chunks(len(coeffs), chunk_pixels)]
+        parts = [
+            torch.logsumexp(self._trig(g, p0, p1) @ self._basis, dim=-1)
+            for p0, p1 in self._chunks(len(coeffs), chunk_pixels)
+        ]
         return torch.cat(parts, dim=1)
 
     # ------------------------------------------------------------------ streamed reductions
@@ -224,7 +228,7 @@ class HealpixGridEvaluator:
     def _trig_at(self, coeffs: torch.Tensor, pix: torch.Tensor) -> torch.Tensor:
         B, K = pix.shape
         T = coeffs.new_empty(B, K, 2 * self.lmax + 1)
-        for t, (c_t, W) in enumerate(zip(self._gathered(coeffs), self._weights)):
+        for t, (c_t, W) in enumerate(zip(self._gathered(coeffs), self._weights, strict=True)):
             Wp = W[:, pix]  # [n_t, B, K, k]
             out = torch.einsum("bi,ibkc->bkc", c_t, Wp)  # [B, K, k]
             if t == 0:

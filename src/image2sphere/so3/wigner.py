@@ -25,9 +25,11 @@ __all__ = [
     "check_lmax",
     "flat_wigner",
     "flat_wigner_from_angles",
+    "left_translate_so3_coeffs",
     "lmax_from_n_so3_coeffs",
     "n_s2_coeffs",
     "n_so3_coeffs",
+    "rotate_s2_coeffs",
     "so3_layout",
     "wigner_D",
 ]
@@ -118,3 +120,34 @@ def flat_wigner(lmax: int, rotations: torch.Tensor) -> torch.Tensor:
     lmax = check_lmax(lmax)
     check_rotation_matrix(rotations)
     return flat_wigner_from_angles(lmax, *matrix_to_angles(rotations))
+
+
+def _wigner_blocks(lmax: int, rotation: torch.Tensor) -> list[torch.Tensor]:
+    check_rotation_matrix(rotation)
+    if rotation.shape != (3, 3):
+        raise ValueError(f"rotation must have shape (3, 3), got {tuple(rotation.shape)}")
+    angles = matrix_to_angles(rotation)
+    return [wigner_D(l, *angles) for l in range(check_lmax(lmax) + 1)]
+
+
+def rotate_s2_coeffs(x: torch.Tensor, rotation: torch.Tensor, lmax: int) -> torch.Tensor:
+    """Coefficients ``(..., (lmax+1)^2)`` of the rotated S2 signal ``x(R^-1 u)``: ``x^l -> D^l(R) x^l``."""
+    if x.shape[-1] != n_s2_coeffs(lmax):
+        raise ValueError(f"S2 coefficients must end in {n_s2_coeffs(lmax)} for lmax={lmax}, got {tuple(x.shape)}")
+    blocks = _wigner_blocks(lmax, rotation.to(x.dtype))
+    out = [x[..., l * l : (l + 1) ** 2] @ D.T for l, D in enumerate(blocks)]  # D x per l  [..., 2l+1]
+    return torch.cat(out, dim=-1)
+
+
+def left_translate_so3_coeffs(c: torch.Tensor, rotation: torch.Tensor, lmax: int) -> torch.Tensor:
+    """Coefficients ``(..., n_so3_coeffs)`` of the left-translated signal ``f(R^-1 g)``: ``c^l -> D^l(R) c^l``."""
+    if c.shape[-1] != n_so3_coeffs(lmax):
+        raise ValueError(f"SO(3) coefficients must end in {n_so3_coeffs(lmax)} for lmax={lmax}, got {tuple(c.shape)}")
+    blocks = _wigner_blocks(lmax, rotation.to(c.dtype))
+    out, offset = [], 0
+    for l, D in enumerate(blocks):
+        d = 2 * l + 1
+        C = c[..., offset : offset + d * d].unflatten(-1, (d, d))  # [..., d, d]
+        out.append((D @ C).flatten(-2))
+        offset += d * d
+    return torch.cat(out, dim=-1)

@@ -1,0 +1,20 @@
+"""Neural network modules: encoders, image-to-sphere projectors, S2/SO(3) convolutions, pose networks."""
+
+from image2sphere.nn.activation import SO3ReLU
+from image2sphere.nn.encoder import RESNET_DEPTHS, ResNetEncoder
+from image2sphere.nn.i2s import I2S, FourierMLP
+from image2sphere.nn.projector import HarmonicS2Projector, SpatialS2Projector
+from image2sphere.nn.s2_conv import S2Conv
+from image2sphere.nn.so3_conv import SO3Conv
+
+__all__ = [
+    "I2S",
+    "RESNET_DEPTHS",
+    "FourierMLP",
+    "HarmonicS2Projector",
+    "ResNetEncoder",
+    "S2Conv",
+    "SO3Conv",
+    "SO3ReLU",
+    "SpatialS2Projector",
+]

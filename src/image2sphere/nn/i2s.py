@@ -1,0 +1,178 @@
+"""The Image2Sphere network and the "Fourier basis with MLP" baseline.
+
+Both map images ``[B, 3, H, W]`` (and, optionally, class indices ``[B]``) to the Fourier
+coefficients ``[B, n_so3_coeffs(lmax)]`` of an SO(3) signal in the flat Wigner layout; the signal
+on an SO(3) grid, put through a softmax, is the predicted distribution
+(:class:`image2sphere.so3.SO3Distribution`). Every choice is a constructor argument, so Hydra
+builds any variant of the paper's ablations from configuration.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from image2sphere.nn.activation import SO3ReLU
+from image2sphere.nn.projector import HarmonicS2Projector, SpatialS2Projector
+from image2sphere.nn.s2_conv import S2Conv
+from image2sphere.nn.so3_conv import SO3Conv
+from image2sphere.so3.distribution import SO3Distribution
+from image2sphere.so3.wigner import check_lmax, n_so3_coeffs
+
+__all__ = ["I2S", "FourierMLP"]
+
+PROJECTORS = ("spatial", "harmonic")
+
+
+class _PoseNetwork(nn.Module):
+    """Shared parts: the encoder, the optional one-hot class channels, and the output distribution."""
+
+    def __init__(self, encoder: nn.Module, image_size: int | tuple[int, int], lmax: int, num_classes: int):
+        super().__init__()
+        self.lmax = check_lmax(lmax)
+        if num_classes < 0:
+            raise ValueError(f"num_classes must be >= 0, got {num_classes!r}")
+        self.encoder = encoder
+        self.num_classes = num_classes
+        self.image_size = image_size
+        self.feature_size = encoder.feature_size(image_size)
+        self.feature_channels = encoder.out_channels + num_classes
+
+    def features(self, images: torch.Tensor, class_index: torch.Tensor | None) -> torch.Tensor:
+        """Encoder map ``[B, C (+ num_classes), h, w]``, with the class one-hot as constant channels."""
+        x = self.encoder(images)
+        if self.num_classes == 0:
+            return x
+        if class_index is None:
+            raise ValueError(f"this model was built with num_classes={self.num_classes}: pass class_index")
+        class_index = torch.as_tensor(class_index, device=x.device)
+        if class_index.shape != (len(x),) or ((class_index < 0) | (class_index >= self.num_classes)).any():
+            raise ValueError(
+                f"class_index must be integers in [0, {self.num_classes}) of shape ({len(x)},), "
+                f"got shape {tuple(class_index.shape)}"
+            )
+        onehot = nn.functional.one_hot(class_index.long(), self.num_classes).to(x.dtype)  # [B, nc]
+        return torch.cat([x, onehot[:, :, None, None].expand(-1, -1, *x.shape[-2:])], dim=1)
+
+    def distribution(self, images: torch.Tensor, class_index: torch.Tensor | None = None) -> SO3Distribution:
+        """The predicted distribution over rotations for each image."""
+        return SO3Distribution(self(images, class_index), self.lmax)
+
+
+class I2S(_PoseNetwork):
+    """Image2Sphere: encoder -> projection onto S2 -> S2 conv -> (SO(3) ReLU -> SO(3) conv) x n.
+
+    Args:
+        encoder: a module with ``out_channels``, ``feature_size(image_size)`` and ``forward``
+            (e.g. :class:`image2sphere.nn.ResNetEncoder`).
+        image_size: input image size (224 in the paper; 7x7 feature map).
+        lmax: band limit of every Fourier representation (6).
+        projector: ``"spatial"`` (orthographic projection, I2S) or ``"harmonic"`` (MLP to SH
+            coefficients, the "Fourier projection" ablation).
+        filter: the S2 filter's parametrisation, ``"harmonic"`` (I2S) or ``"spatial"``.
+        sphere_channels: channels of the S2 signal (after the projector's 1x1 convolution).
+        so3_channels: channels of the hidden SO(3) signal (8 in the paper).
+        n_so3_conv: 0, 1 (I2S) or 2 SO(3) convolutions after the S2 convolution.
+        projector_level, n_subset, taper_deg, coverage, sigma: the spatial projector's HEALPix
+            level (2), points used per training pass (20; ``None`` for all), taper start (75 deg),
+            disk coverage (0.9) and Gaussian width (0.2, in units of half the map).
+        harmonic_hidden: hidden width of the harmonic projector's MLP.
+        s2_kernel_level: HEALPix level of the spatial S2 filter's points.
+        so3_kernel_max_deg: support of the SO(3) filter around the identity (22.5 deg).
+        activation_resolution: resolution of e3nn's SO(3) grid for the ReLU.
+        num_classes: if > 0, the class one-hot is appended to the feature map as constant channels.
+    """
+
+    def __init__(
+        self,
+        encoder: nn.Module,
+        image_size: int | tuple[int, int] = 224,
+        lmax: int = 6,
+        projector: str = "spatial",
+        filter: str = "harmonic",
+        sphere_channels: int = 512,
+        so3_channels: int = 8,
+        n_so3_conv: int = 1,
+        projector_level: int = 2,
+        n_subset: int | None = 20,
+        taper_deg: float = 75.0,
+        coverage: float = 0.9,
+        sigma: float = 0.2,
+        harmonic_hidden: int = 512,
+        s2_kernel_level: int = 2,
+        so3_kernel_max_deg: float = 22.5,
+        activation_resolution: int = 8,
+        num_classes: int = 0,
+    ):
+        super().__init__(encoder, image_size, lmax, num_classes)
+        if projector not in PROJECTORS:
+            raise ValueError(f"projector must be one of {PROJECTORS}, got {projector!r}")
+        if n_so3_conv not in (0, 1, 2):
+            raise ValueError(f"n_so3_conv must be 0, 1 or 2, got {n_so3_conv!r}")
+        if projector == "spatial":
+            self.projector = SpatialS2Projector(
+                self.feature_channels,
+                self.feature_size,
+                sphere_channels=sphere_channels,
+                lmax=lmax,
+                level=projector_level,
+                taper_beta=math.radians(taper_deg),
+                coverage=coverage,
+                sigma=sigma,
+                n_subset=n_subset,
+            )
+        else:
+            self.projector = HarmonicS2Projector(
+                self.feature_channels,
+                sphere_channels=sphere_channels,
+                lmax=lmax,
+                hidden_channels=harmonic_hidden,
+            )
+        s2_out = so3_channels if n_so3_conv > 0 else 1
+        self.s2_conv = S2Conv(sphere_channels, s2_out, lmax=lmax, filter=filter, kernel_level=s2_kernel_level)
+        layers: list[nn.Module] = []
+        for i in range(n_so3_conv):
+            out = 1 if i == n_so3_conv - 1 else so3_channels
+            layers += [
+                SO3ReLU(lmax, activation_resolution),
+                SO3Conv(so3_channels, out, lmax=lmax, max_angle=math.radians(so3_kernel_max_deg)),
+            ]
+        self.so3_layers = nn.Sequential(*layers)
+
+    def forward(self, images: torch.Tensor, class_index: torch.Tensor | None = None) -> torch.Tensor:
+        """Images ``[B, 3, H, W]`` -> SO(3) coefficients ``[B, n_so3_coeffs(lmax)]``."""
+        x = self.projector(self.features(images, class_index))  # [B, S, (L+1)^2]
+        x = self.s2_conv(x)  # [B, so3_channels, n_so3]
+        x = self.so3_layers(x)  # [B, 1, n_so3]
+        return x.squeeze(1)
+
+
+class FourierMLP(_PoseNetwork):
+    """Baseline "Fourier basis w/ MLP": pooled encoder features -> MLP -> SO(3) coefficients.
+
+    Args:
+        hidden: widths of the hidden layers.
+    """
+
+    def __init__(
+        self,
+        encoder: nn.Module,
+        image_size: int | tuple[int, int] = 224,
+        lmax: int = 6,
+        hidden: tuple[int, ...] | list[int] = (512,),
+        num_classes: int = 0,
+    ):
+        super().__init__(encoder, image_size, lmax, num_classes)
+        widths = [self.feature_channels, *hidden]
+        layers: list[nn.Module] = []
+        for a, b in zip(widths[:-1], widths[1:], strict=True):
+            layers += [nn.Linear(a, b), nn.ReLU()]
+        layers.append(nn.Linear(widths[-1], n_so3_coeffs(lmax)))
+        self.mlp = nn.Sequential(*layers)
+
+    def forward(self, images: torch.Tensor, class_index: torch.Tensor | None = None) -> torch.Tensor:
+        """Images ``[B, 3, H, W]`` -> SO(3) coefficients ``[B, n_so3_coeffs(lmax)]``."""
+        x = self.features(images, class_index).mean(dim=(-1, -2))  # [B, C]
+        return self.mlp(x)

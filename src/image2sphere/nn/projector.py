@@ -1,0 +1,145 @@
+"""Image feature map -> signal on the sphere, in the Fourier domain (real SH, component normalisation).
+
+Conventions
+-----------
+S2 points are e3nn YXY angles ``(alpha, beta)``, i.e. ``u = (sin b sin a, cos b, sin b cos a)``.
+The image faces the ``+y`` pole: orthographic projection ``P(u) = (u_x, u_z)`` maps the
+hemisphere ``beta <= pi/2`` onto the unit disk, whose horizontal image axis is ``x`` and vertical
+image axis (rows, downwards) is ``z``. The feature map's pixel centres are placed on
+``[-1, 1]^2``; the disk's rim lies at radius ``1 / coverage`` of the outermost grid point.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from e3nn import o3
+from torch import nn
+
+from image2sphere.so3.grid import s2_healpix_grid
+from image2sphere.so3.wigner import check_lmax, n_s2_coeffs
+
+__all__ = ["HarmonicS2Projector", "SpatialS2Projector"]
+
+
+def _pair(size) -> tuple[int, int]:
+    h, w = (size, size) if isinstance(size, int) else tuple(size)
+    if h < 1 or w < 1:
+        raise ValueError(f"feature map size must be positive, got {size!r}")
+    return int(h), int(w)
+
+
+class SpatialS2Projector(nn.Module):
+    """Orthographic projection of a feature map onto a HEALPix hemisphere, then the S2 Fourier transform.
+
+    Each grid point ``u_i`` reads the (1x1-convolved) feature map at ``P(u_i)`` by Gaussian weights
+    over the pixel centres inside the unit disk (pixels outside it have no preimage on the
+    sphere and are never read), normalised to sum to one, and scaled by a taper that falls
+    linearly from 1 at ``taper_beta`` to 0 at ``max_beta``. In training a random subset of
+    ``n_subset`` grid points is used per forward pass (all of them in eval mode); the Fourier
+    coefficients are the discrete projection ``sum_i f(u_i) Y(u_i) / sqrt(n)`` over the points used.
+
+    Input ``[B, in_channels, H, W]``; output ``[B, sphere_channels, (lmax+1)^2]``.
+    """
+
+    def __init__(
+        self,
+        in_channels: int,
+        feature_size: int | tuple[int, int],
+        sphere_channels: int = 512,
+        lmax: int = 6,
+        level: int = 2,
+        max_beta: float = math.pi / 2,
+        taper_beta: float = math.radians(75),
+        coverage: float = 0.9,
+        sigma: float = 0.2,
+        n_subset: int | None = 20,
+        learn_interpolation: bool = True,
+        activation: bool = True,
+    ):
+        super().__init__()
+        self.lmax = check_lmax(lmax)
+        h, w = _pair(feature_size)
+        if not 0 < coverage <= 1:
+            raise ValueError(f"coverage must be in (0, 1], got {coverage!r}")
+        if sigma <= 0:
+            raise ValueError(f"sigma must be positive, got {sigma!r}")
+        if not 0 < taper_beta <= max_beta <= math.pi:
+            raise ValueError(f"need 0 < taper_beta <= max_beta <= pi, got {taper_beta!r}, {max_beta!r}")
+        alpha, beta = s2_healpix_grid(level, max_beta=max_beta, dtype=torch.float64)  # [K]
+        if n_subset is not None and not 1 <= n_subset <= len(alpha):
+            raise ValueError(f"n_subset must be in 1..{len(alpha)} (grid points at level {level}), got {n_subset!r}")
+        self.n_subset = n_subset
+        self.conv = nn.Conv2d(in_channels, sphere_channels, kernel_size=1)
+        self.activation = activation
+
+        xyz = o3.angles_to_xyz(alpha, beta)  # [K, 3]
+        planar = xyz[:, [0, 2]]  # (u_x, u_z): image (horizontal, vertical)
+        planar = coverage * planar / planar.norm(dim=1).max()
+        rows = torch.linspace(-1, 1, h, dtype=torch.float64) if h > 1 else torch.zeros(1, dtype=torch.float64)
+        cols = torch.linspace(-1, 1, w, dtype=torch.float64) if w > 1 else torch.zeros(1, dtype=torch.float64)
+        py, px = torch.meshgrid(rows, cols, indexing="ij")  # [H, W]
+        inside = (px**2 + py**2 <= 1 + 1e-9).to(torch.float64)  # [H, W]
+        d2 = (px[..., None] - planar[:, 0]) ** 2 + (py[..., None] - planar[:, 1]) ** 2  # [H, W, K]
+        weight = torch.exp(-d2 / (2 * sigma**2)) * inside[..., None]
+        weight = weight / weight.sum(dim=(0, 1), keepdim=True).clamp_min(1e-300)
+        taper = ((max_beta - beta) / (max_beta - taper_beta)).clamp(0, 1) if taper_beta < max_beta else 1.0
+        weight = weight * taper
+        self.register_buffer("inside", inside.to(torch.float32), persistent=False)  # [H, W]
+        self.interpolation = nn.Parameter(weight.to(torch.float32), requires_grad=learn_interpolation)  # [H, W, K]
+        self.register_buffer("alpha", alpha.float(), persistent=False)
+        self.register_buffer("beta", beta.float(), persistent=False)
+        Y = o3.spherical_harmonics_alpha_beta(list(range(lmax + 1)), alpha, beta, normalization="component")
+        self.register_buffer("Y", Y.to(torch.float32), persistent=False)  # [K, (lmax+1)^2]
+
+    @property
+    def n_points(self) -> int:
+        return self.Y.shape[0]
+
+    def sample_points(self) -> torch.Tensor:
+        """Indices of the grid points used by this forward pass: a random subset in training mode."""
+        if self.training and self.n_subset is not None:
+            return torch.randperm(self.n_points, device=self.Y.device)[: self.n_subset]
+        return torch.arange(self.n_points, device=self.Y.device)
+
+    def project(self, features: torch.Tensor, points: torch.Tensor | None = None) -> torch.Tensor:
+        """Spatial signal on grid points ``points`` (default: all): ``[B, sphere_channels, len(points)]``."""
+        if features.ndim != 4 or features.shape[-2:] != self.inside.shape:
+            raise ValueError(
+                f"feature map must have shape (batch, channels, {self.inside.shape[0]}, {self.inside.shape[1]}), "
+                f"got {tuple(features.shape)}"
+            )
+        points = torch.arange(self.n_points, device=self.Y.device) if points is None else points
+        x = self.conv(features)  # [B, S, H, W]
+        weight = self.interpolation[..., points] * self.inside[..., None]  # [H, W, k]
+        signal = torch.einsum("bshw,hwk->bsk", x, weight)  # [B, S, k]
+        return torch.relu(signal) if self.activation else signal
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        points = self.sample_points()
+        signal = self.project(features, points)  # [B, S, k]
+        return torch.einsum("bsk,kj->bsj", signal, self.Y[points]) / math.sqrt(len(points))  # [B, S, (L+1)^2]
+
+
+class HarmonicS2Projector(nn.Module):
+    """ "Fourier projection": global average pool, then an MLP straight to S2 Fourier coefficients.
+
+    Input ``[B, in_channels, H, W]``; output ``[B, sphere_channels, (lmax+1)^2]``.
+    """
+
+    def __init__(self, in_channels: int, sphere_channels: int = 64, lmax: int = 6, hidden_channels: int = 512):
+        super().__init__()
+        self.lmax = check_lmax(lmax)
+        self.sphere_channels = sphere_channels
+        self.mlp = nn.Sequential(
+            nn.Linear(in_channels, hidden_channels),
+            nn.ReLU(),
+            nn.Linear(hidden_channels, sphere_channels * n_s2_coeffs(lmax)),
+        )
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        if features.ndim != 4:
+            raise ValueError(f"feature map must have shape (batch, channels, H, W), got {tuple(features.shape)}")
+        pooled = features.mean(dim=(-1, -2))  # [B, C]
+        return self.mlp(pooled).view(len(features), self.sphere_channels, n_s2_coeffs(self.lmax))

@@ -1,0 +1,74 @@
+"""SO(3) group convolution with a locally supported filter, in the Fourier domain.
+
+Conventions
+-----------
+Signals are in the flat Wigner layout: ``f(R) = sum_l sqrt(2l+1) sum_{mn} F^l[m,n] D^l(R)[m,n]``.
+The filter is a weighted sum of point masses at rotations ``g_k`` within ``max_angle`` of the
+identity; for one input and output channel the convolution is
+
+    out(R) = sum_k w_k f(R g_k) / sqrt(f_in * K),
+
+which in the Fourier domain is ``out^l = F^l @ Psi^l^T / sqrt(2l+1)`` with
+``Psi = sum_k w_k flat_wigner(g_k)``. Rotating the input (``f -> f(Q^-1 .)``) left-translates
+the output the same way: the layer is SO(3)-equivariant.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from image2sphere.so3.grid import so3_near_identity_grid
+from image2sphere.so3.wigner import check_lmax, flat_wigner, n_so3_coeffs
+
+__all__ = ["SO3Conv"]
+
+
+class SO3Conv(nn.Module):
+    """SO(3) convolution ``[B, f_in, n_so3_coeffs] -> [B, f_out, n_so3_coeffs]``.
+
+    Args:
+        max_angle: support of the filter around the identity (radians; 22.5 deg in the paper).
+        axis_level, n_angles: the kernel grid, see :func:`image2sphere.so3.so3_near_identity_grid`.
+        kernel: optional explicit kernel rotations ``(K, 3, 3)`` instead of the near-identity grid.
+    """
+
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        lmax: int = 6,
+        max_angle: float = math.pi / 8,
+        axis_level: int = 1,
+        n_angles: int = 3,
+        kernel: torch.Tensor | None = None,
+    ):
+        super().__init__()
+        self.lmax = check_lmax(lmax)
+        self.in_channels, self.out_channels = in_channels, out_channels
+        if kernel is None:
+            kernel = so3_near_identity_grid(max_angle, axis_level, n_angles, dtype=torch.float64)
+        D = flat_wigner(lmax, kernel.to(torch.float64))  # [K, n_so3]
+        self.register_buffer("kernel_D", D.float() / math.sqrt(len(kernel)), persistent=False)
+        self.weight = nn.Parameter(torch.randn(in_channels, out_channels, len(kernel)))
+        self._blocks = [(l * (4 * l * l - 1) // 3, 2 * l + 1) for l in range(lmax + 1)]  # (offset, size)
+
+    def filter(self) -> torch.Tensor:
+        """The filter's SO(3) coefficients ``[f_in, f_out, n_so3_coeffs]`` (flat Wigner layout)."""
+        return torch.einsum("fgk,kn->fgn", self.weight, self.kernel_D)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        n = n_so3_coeffs(self.lmax)
+        if x.ndim != 3 or x.shape[1:] != (self.in_channels, n):
+            raise ValueError(f"SO(3) input must have shape (batch, {self.in_channels}, {n}), got {tuple(x.shape)}")
+        psi = self.filter()
+        scale = 1 / math.sqrt(self.in_channels)
+        out = []
+        for offset, d in self._blocks:
+            F = x[..., offset : offset + d * d].unflatten(-1, (d, d))  # [B, f_in, d, d]
+            P = psi[..., offset : offset + d * d].unflatten(-1, (d, d))  # [f_in, f_out, d, d]
+            block = torch.einsum("bfmk,fgnk->bgmn", F, P) * (scale / math.sqrt(d))  # [B, f_out, d, d]
+            out.append(block.flatten(-2))
+        return torch.cat(out, dim=-1)

@@ -1,0 +1,134 @@
+"""Equivariance and closed forms of the S2/SO(3) layers."""
+
+import math
+
+import pytest
+import torch
+from e3nn import o3
+
+from image2sphere.nn import S2Conv, SO3Conv, SO3ReLU
+from image2sphere.so3 import (
+    flat_wigner,
+    geodesic_distance,
+    n_s2_coeffs,
+    n_so3_coeffs,
+    random_rotations,
+    s2_healpix_grid,
+    so3_near_identity_grid,
+)
+from image2sphere.testing import assert_left_equivariant, equivariance_error
+
+LMAX = 6
+
+
+@pytest.fixture
+def gen():
+    return torch.Generator().manual_seed(1234)
+
+
+@pytest.mark.parametrize("filter", ["harmonic", "spatial"])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_s2_conv_is_left_equivariant(filter, dtype, gen):
+    torch.manual_seed(0)
+    conv = S2Conv(4, 3, LMAX, filter=filter).to(dtype)
+    x = torch.randn(2, 4, n_s2_coeffs(LMAX), dtype=dtype, generator=gen)
+    assert_left_equivariant(conv, x, LMAX, "s2", generator=gen)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_so3_conv_is_left_equivariant(dtype, gen):
+    torch.manual_seed(0)
+    conv = SO3Conv(3, 2, LMAX).to(dtype)
+    x = torch.randn(2, 3, n_so3_coeffs(LMAX), dtype=dtype, generator=gen)
+    assert_left_equivariant(conv, x, LMAX, "so3", generator=gen)
+
+
+def test_head_is_left_equivariant_up_to_activation_grid_error(gen):
+    torch.manual_seed(0)
+    head = torch.nn.Sequential(S2Conv(5, 4, LMAX), SO3ReLU(LMAX, resolution=8), SO3Conv(4, 1, LMAX)).double()
+    x = torch.randn(2, 5, n_s2_coeffs(LMAX), dtype=torch.float64, generator=gen)
+    # the ReLU is evaluated on e3nn's finite SO(3) grid: equivariant only up to its sampling error
+    assert_left_equivariant(head, x, LMAX, "s2", rtol=2e-2, generator=gen)
+    linear = torch.nn.Sequential(S2Conv(5, 4, LMAX), SO3Conv(4, 1, LMAX)).double()
+    assert_left_equivariant(linear, x, LMAX, "s2", generator=gen)
+
+
+def test_so3_relu_error_shrinks_with_resolution(gen):
+    x = torch.randn(2, 3, n_so3_coeffs(LMAX), dtype=torch.float64, generator=gen)
+    R = random_rotations(1, generator=gen, dtype=torch.float64)[0]
+    coarse = equivariance_error(SO3ReLU(LMAX, 4).double(), x, LMAX, "so3", R)
+    fine = equivariance_error(SO3ReLU(LMAX, 10).double(), x, LMAX, "so3", R)
+    assert fine < coarse and fine < 5e-3
+
+
+class _TransposedS2Conv(S2Conv):
+    """The S2 convolution with input and filter indices swapped (i.e. D transposed): not left-equivariant."""
+
+    def forward(self, x):
+        xs = x[..., self.index_psi]
+        ps = self.filter()[..., self.index_x]
+        return torch.einsum("bfi,fgi->bgi", xs, ps) / math.sqrt(self.in_channels)
+
+
+def test_equivariance_check_catches_a_broken_convention(gen):
+    conv = _TransposedS2Conv(3, 2, LMAX).double()
+    x = torch.randn(2, 3, n_s2_coeffs(LMAX), dtype=torch.float64, generator=gen)
+    with pytest.raises(AssertionError, match="not left-equivariant"):
+        assert_left_equivariant(conv, x, LMAX, "s2", generator=gen)
+
+
+def test_s2_conv_equals_the_spatial_group_convolution(gen):
+    """out(g) = integral of x(u) psi'(g^-1 u) du / 4 pi, with psi'^l = sqrt(2l+1) psi^l: checked by quadrature."""
+    lmax = 2
+    conv = S2Conv(1, 1, lmax).double()
+    x = torch.randn(1, 1, n_s2_coeffs(lmax), dtype=torch.float64, generator=gen)
+    scale = torch.cat([torch.full((2 * l + 1,), math.sqrt(2 * l + 1)) for l in range(lmax + 1)]).double()
+    psi = conv.weight[0, 0].detach() * scale  # [(lmax+1)^2]
+    out = conv(x)[0, 0].detach()
+    alpha, beta = s2_healpix_grid(6, dtype=torch.float64)  # 49152 equal-area points
+    u = o3.angles_to_xyz(alpha, beta)  # [P, 3]
+    Y = o3.spherical_harmonics(list(range(lmax + 1)), u, normalize=True, normalization="component")
+    for g in random_rotations(3, generator=gen, dtype=torch.float64):
+        Yrot = o3.spherical_harmonics(list(range(lmax + 1)), u @ g, normalize=True, normalization="component")
+        integral = ((Y @ x[0, 0]) * (Yrot @ psi)).mean()  # u @ g = g^T u = g^-1 u
+        fourier = flat_wigner(lmax, g) @ out
+        assert fourier.item() == pytest.approx(integral.item(), abs=2e-3 * float(x.abs().max() * psi.abs().max()))
+
+
+def test_so3_conv_with_one_kernel_point_is_right_translation(gen):
+    g = random_rotations(1, generator=gen, dtype=torch.float64)
+    conv = SO3Conv(1, 1, lmax=4, kernel=g).double()
+    with torch.no_grad():
+        conv.weight.fill_(1.0)
+    f = torch.randn(1, 1, n_so3_coeffs(4), dtype=torch.float64, generator=gen)
+    out = conv(f)[0, 0]
+    R = random_rotations(6, generator=gen, dtype=torch.float64)
+    expected = flat_wigner(4, R @ g[0]) @ f[0, 0]  # f(R g)
+    torch.testing.assert_close(flat_wigner(4, R) @ out, expected, atol=1e-5, rtol=1e-5)
+
+
+def test_so3_conv_filter_is_locally_supported():
+    max_angle = math.radians(22.5)
+    kernel = so3_near_identity_grid(max_angle, dtype=torch.float64)
+    angles = geodesic_distance(kernel, torch.eye(3, dtype=torch.float64))
+    assert angles.max() <= max_angle + 1e-9
+    assert angles.max() >= max_angle - 1e-9 and angles.min() == 0
+
+
+def test_layers_reject_bad_shapes():
+    with pytest.raises(ValueError, match="S2 input must have shape"):
+        S2Conv(4, 2, LMAX)(torch.randn(2, 4, 50))
+    with pytest.raises(ValueError, match="SO\\(3\\) input must have shape"):
+        SO3Conv(2, 2, LMAX)(torch.randn(2, 3, 455))
+    with pytest.raises(ValueError, match="filter must be one of"):
+        S2Conv(4, 2, LMAX, filter="fourier")
+    with pytest.raises(ValueError, match="lmax"):
+        S2Conv(4, 2, -1)
+    with pytest.raises(ValueError, match="resolution"):
+        SO3ReLU(LMAX, 0)
+
+
+def test_activation_buffers_are_not_saved():
+    act = SO3ReLU(2, 4)
+    assert act.state_dict() == {}
+    assert len(list(act.buffers())) > 0

@@ -1,0 +1,228 @@
+"""Projector, encoder, the composed I2S variants, and the torchvision guard."""
+
+import math
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from image2sphere.nn import I2S, FourierMLP, HarmonicS2Projector, ResNetEncoder, SpatialS2Projector
+from image2sphere.so3 import SO3Distribution, n_s2_coeffs, n_so3_coeffs
+
+
+def _identity_projector(**kwargs):
+    proj = SpatialS2Projector(1, 7, sphere_channels=1, lmax=4, activation=False, **kwargs)
+    with torch.no_grad():
+        proj.conv.weight.fill_(1.0)
+        proj.conv.bias.zero_()
+    return proj.eval()
+
+
+def test_projector_maps_the_image_centre_to_the_pole():
+    proj = _identity_projector()
+    fmap = torch.zeros(1, 1, 7, 7)
+    fmap[..., 3, 3] = 1.0
+    signal = proj.project(fmap)[0, 0]  # [K]
+    assert proj.beta[signal.argmax()] == proj.beta.min()  # the grid points nearest the +y pole
+    assert signal[proj.beta > math.radians(60)].abs().max() < 1e-3 * signal.max()
+
+
+def test_projector_image_corners_map_to_nothing():
+    proj = _identity_projector()
+    fmap = torch.zeros(1, 1, 7, 7)
+    for r, c in [(0, 0), (0, 6), (6, 0), (6, 6)]:
+        fmap[..., r, c] = 1.0
+    assert proj.project(fmap).abs().max() == 0
+    fmap[..., 3, 0] = 1.0  # the middle of an edge lies on the disk: it is read
+    assert proj.project(fmap).abs().max() > 0
+
+
+def test_projector_hemisphere_and_taper():
+    proj = _identity_projector()
+    assert proj.beta.max() <= math.pi / 2 + 1e-6
+    fmap = torch.ones(1, 1, 7, 7)
+    signal = proj.project(fmap)[0, 0]
+    # interpolation weights sum to one, so a constant map gives the taper profile
+    taper = ((math.pi / 2 - proj.beta) / (math.pi / 2 - math.radians(75))).clamp(0, 1)
+    torch.testing.assert_close(signal, taper, atol=1e-5, rtol=1e-5)
+
+
+def test_projector_subsets_points_only_in_training():
+    proj = SpatialS2Projector(8, 7, sphere_channels=4, lmax=3, n_subset=20)
+    fmap = torch.randn(2, 8, 7, 7)
+    proj.train()
+    torch.manual_seed(0)
+    pts = proj.sample_points()
+    assert len(pts) == 20 and len(set(pts.tolist())) == 20
+    torch.manual_seed(0)
+    a = proj(fmap)
+    torch.manual_seed(1)
+    b = proj(fmap)
+    assert not torch.allclose(a, b)
+    proj.eval()
+    assert len(proj.sample_points()) == proj.n_points
+    torch.manual_seed(0)
+    c = proj(fmap)
+    torch.manual_seed(1)
+    torch.testing.assert_close(c, proj(fmap))
+    assert c.shape == (2, 4, n_s2_coeffs(3))
+
+
+def test_projector_rejects_bad_input():
+    with pytest.raises(ValueError, match="n_subset"):
+        SpatialS2Projector(8, 7, n_subset=1000)
+    with pytest.raises(ValueError, match="feature map must have shape"):
+        SpatialS2Projector(8, 7, sphere_channels=4, lmax=2)(torch.randn(1, 8, 6, 6))
+
+
+def test_harmonic_projector_shape():
+    out = HarmonicS2Projector(16, sphere_channels=3, lmax=2, hidden_channels=8)(torch.randn(2, 16, 5, 5))
+    assert out.shape == (2, 3, n_s2_coeffs(2))
+
+
+@pytest.mark.parametrize("depth,channels", [(18, 512), (50, 2048)])
+def test_encoder_feature_shape(depth, channels):
+    enc = ResNetEncoder(depth).eval()
+    assert enc.out_channels == channels
+    assert enc.feature_size(224) == (7, 7)
+    for size in [(224, 224), (97, 130)]:
+        with torch.no_grad():
+            out = enc(torch.zeros(1, 3, *size))
+        assert out.shape == (1, channels, *enc.feature_size(size))
+
+
+def test_encoder_loads_a_local_weights_file(tmp_path):
+    from torchvision.models import resnet18
+
+    torch.manual_seed(3)
+    full = resnet18()
+    path = tmp_path / "r18.pth"
+    torch.save(full.state_dict(), path)
+    enc = ResNetEncoder(18, weights=str(path))
+    torch.testing.assert_close(enc.body[0].weight, full.conv1.weight)
+    torch.testing.assert_close(enc.body[7][1].conv2.weight, full.layer4[1].conv2.weight)
+
+
+def test_encoder_weights_errors(tmp_path, monkeypatch):
+    with pytest.raises(ValueError, match="does not exist"):
+        ResNetEncoder(18, weights=str(tmp_path / "missing.pth"))
+    bad = tmp_path / "bad.pth"
+    bad.write_bytes(b"not a torch file")
+    with pytest.raises(ValueError, match="could not be read"):
+        ResNetEncoder(18, weights=str(bad))
+    wrong = tmp_path / "r50.pth"
+    from torchvision.models import resnet50
+
+    torch.save(resnet50().state_dict(), wrong)
+    with pytest.raises(ValueError, match="does not fit resnet18"):
+        ResNetEncoder(18, weights=str(wrong))
+    with pytest.raises(ValueError, match="unknown torchvision weights"):
+        ResNetEncoder(18, weights="NOT_A_WEIGHT")
+    with pytest.raises(ValueError, match="depth"):
+        ResNetEncoder(19)
+    # a known name whose download fails (no network here, and never attempted by the test)
+    from torchvision.models import ResNet18_Weights
+
+    def offline(self, *args, **kwargs):
+        raise OSError("no network")
+
+    monkeypatch.setattr(type(ResNet18_Weights.IMAGENET1K_V1), "get_state_dict", offline)
+    with pytest.raises(RuntimeError, match="could not load torchvision weights.*weights=null"):
+        ResNetEncoder(18, weights="IMAGENET1K_V1")
+
+
+VARIANTS = [
+    dict(),
+    dict(projector="harmonic", sphere_channels=32),
+    dict(filter="spatial"),
+    dict(projector="harmonic", filter="spatial", sphere_channels=32),
+    dict(n_so3_conv=0),
+    dict(n_so3_conv=2),
+    dict(lmax=2),
+    dict(num_classes=3),
+]
+
+
+@pytest.fixture(scope="module")
+def resnet18():
+    return ResNetEncoder(18)
+
+
+@pytest.mark.parametrize("kwargs", VARIANTS, ids=lambda k: ",".join(f"{a}={b}" for a, b in k.items()) or "i2s")
+def test_every_i2s_variant_trains_on_cpu(kwargs, resnet18):
+    torch.manual_seed(0)
+    model = I2S(resnet18, image_size=224, activation_resolution=6, **kwargs)
+    images = torch.randn(2, 3, 224, 224)
+    classes = torch.tensor([0, 2]) if kwargs.get("num_classes") else None
+    coeffs = model(images, classes)
+    assert coeffs.shape == (2, n_so3_coeffs(kwargs.get("lmax", 6)))
+    dist = SO3Distribution(coeffs, model.lmax)
+    target = torch.tensor([5, 17])
+    loss = torch.nn.functional.cross_entropy(dist.grid_logits(1), target)
+    model.zero_grad()
+    loss.backward()
+    assert torch.isfinite(loss)
+    grads = {n: p.grad for n, p in model.named_parameters() if p.requires_grad}
+    for name in ["s2_conv.weight", "encoder.body.0.weight"]:
+        assert grads[name] is not None and grads[name].abs().sum() > 0, name
+    assert all(g is None or torch.isfinite(g).all() for g in grads.values())
+
+
+def test_fourier_mlp_and_distribution(resnet18):
+    model = FourierMLP(resnet18, image_size=64, lmax=4, hidden=[32, 16])
+    coeffs = model(torch.randn(3, 3, 64, 64))
+    assert coeffs.shape == (3, n_so3_coeffs(4))
+    dist = model.distribution(torch.randn(3, 3, 64, 64))
+    assert isinstance(dist, SO3Distribution) and dist.grid_logits(0).shape == (3, 72)
+
+
+def test_model_bad_input(resnet18):
+    with pytest.raises(ValueError, match="n_so3_conv"):
+        I2S(resnet18, n_so3_conv=3)
+    with pytest.raises(ValueError, match="projector"):
+        I2S(resnet18, projector="fourier")
+    model = I2S(resnet18, image_size=64, num_classes=2, sphere_channels=8, activation_resolution=4, lmax=2)
+    with pytest.raises(ValueError, match="pass class_index"):
+        model(torch.randn(1, 3, 64, 64))
+    with pytest.raises(ValueError, match="class_index"):
+        model(torch.randn(1, 3, 64, 64), torch.tensor([2]))
+    with pytest.raises(ValueError, match="images must have shape"):
+        model(torch.randn(1, 64, 64))
+
+
+def _run(code: str) -> str:
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    return result.stdout
+
+
+def test_torchvision_guard_makes_torchvision_and_lightning_importable():
+    out = _run(
+        "import image2sphere, torch, torchvision, lightning\n"
+        "from torchvision.models import resnet18\n"
+        "print(resnet18().eval()(torch.zeros(1, 3, 64, 64)).shape[-1])\n"
+        "print(hasattr(torch.ops.torchvision, 'nms'))\n"
+    )
+    assert out.split() == ["1000", "True"]
+
+
+def test_torchvision_guard_is_a_noop_where_the_extension_loads():
+    out = _run(
+        "from image2sphere import _torchvision_guard as g\n"
+        "g._library = None\n"
+        "import sys; [sys.modules.pop(m) for m in list(sys.modules) if m.startswith('torchvision')]\n"
+        "g._extension_loads = lambda: True\n"
+        "print(g.install(), g._library)\n"
+    )
+    assert out.split() == ["False", "None"]
+    # once torchvision is imported (here: a stand-in module) it is too late and nothing is done
+    out = _run(
+        "import sys, types\n"
+        "from image2sphere import _torchvision_guard as g\n"
+        "print(g.install())\n"
+        "g._library = None\n"
+        "sys.modules['torchvision'] = types.ModuleType('torchvision')\n"
+        "print(g.install(), g._library)\n"
+    )
+    assert out.split() == ["False", "False", "None"]

@@ -1,0 +1,233 @@
+"""Tests for image2sphere.so3.distribution.SO3Distribution."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from conftest import brute_force_nearest, haar_rotations, reference_dense_grid_logits, reference_flat_wigner
+
+from image2sphere.so3 import (
+    LOG_UNIFORM_DENSITY,
+    SO3Distribution,
+    flat_wigner,
+    geodesic_distance,
+    so3_healpix_grid,
+    so3_healpix_index_to_matrix,
+    so3_healpix_nearest_index,
+)
+
+LMAX = 6
+FLIP = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
+
+
+def peaked(R0: torch.Tensor, scale: float = 1.0) -> SO3Distribution:
+    """Distribution whose signal is ``scale * sum_l (2l+1) chi_l(angle(R0^T R))``: a peak at ``R0``."""
+    return SO3Distribution(scale * flat_wigner(LMAX, R0), LMAX)
+
+
+# ---------------------------------------------------------------------------------- uniform
+@pytest.mark.parametrize("level", [0, 1, 2, 3])
+def test_uniform_distribution(level):
+    B = 2
+    dist = SO3Distribution(torch.zeros(B, 455, dtype=torch.float64), LMAX)
+    assert dist.batch_size == B
+    assert LOG_UNIFORM_DENSITY == pytest.approx(-math.log(math.pi**2))
+    assert LOG_UNIFORM_DENSITY == pytest.approx(-2.2894, abs=1e-4)
+    R = haar_rotations(10, seed=level)
+    ld = dist.log_density(R, level)
+    assert ld.shape == (B, 10)
+    torch.testing.assert_close(ld, torch.full((B, 10), -math.log(math.pi**2), dtype=torch.float64), atol=1e-10,
+                               rtol=0)
+    N = 72 * 8**level
+    logits = dist.grid_logits(level)
+    assert logits.shape == (B, N)
+    lp = dist.log_prob_grid(level)
+    torch.testing.assert_close(lp.exp().sum(dim=1), torch.ones(B, dtype=torch.float64), atol=1e-10, rtol=0)
+    torch.testing.assert_close(lp, torch.full((B, N), -math.log(N), dtype=torch.float64), atol=1e-10, rtol=0)
+    torch.testing.assert_close(dist.log_normalizer(level), torch.full((B,), math.log(N), dtype=torch.float64),
+                               atol=1e-10, rtol=0)
+
+
+def test_uniform_float32():
+    dist = SO3Distribution(torch.zeros(3, 455), LMAX)
+    ld = dist.log_density(haar_rotations(5, seed=1, dtype=torch.float32), 2)
+    assert ld.dtype == torch.float32 and ld.shape == (3, 5)
+    torch.testing.assert_close(ld, torch.full((3, 5), LOG_UNIFORM_DENSITY), atol=1e-4, rtol=0)
+
+
+# ---------------------------------------------------------------------------------- values
+def test_logits_at_arbitrary_rotations():
+    B, K = 3, 7
+    coeffs = torch.randn(B, 455, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    dist = SO3Distribution(coeffs, LMAX)
+    R_shared = haar_rotations(K, seed=1)
+    got = dist.logits(R_shared)
+    assert got.shape == (B, K)
+    torch.testing.assert_close(got, coeffs @ reference_flat_wigner(LMAX, R_shared).T, atol=1e-10, rtol=0)
+    R_per = haar_rotations(B * K, seed=2).reshape(B, K, 3, 3)
+    got = dist.logits(R_per)
+    expected = torch.einsum("bkn,bn->bk", reference_flat_wigner(LMAX, R_per), coeffs)
+    torch.testing.assert_close(got, expected, atol=1e-10, rtol=0)
+    # float32 coefficients, float64 queries: the result follows the coefficients
+    d32 = SO3Distribution(coeffs.float(), LMAX)
+    out = d32.logits(R_shared)
+    assert out.dtype == torch.float32
+    torch.testing.assert_close(out.double(), dist.logits(R_shared), atol=1e-4 * 30, rtol=1e-4)
+
+
+def test_grid_values_match_dense_reference():
+    coeffs = torch.randn(2, 455, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    dist = SO3Distribution(coeffs, LMAX)
+    level = 2
+    ref = reference_dense_grid_logits(coeffs, LMAX, level)
+    torch.testing.assert_close(dist.grid_logits(level), ref, atol=1e-9, rtol=0)
+    torch.testing.assert_close(dist.log_prob_grid(level), torch.log_softmax(ref, 1), atol=1e-9, rtol=0)
+    torch.testing.assert_close(dist.log_normalizer(level), torch.logsumexp(ref, 1), atol=1e-9, rtol=0)
+    idx = torch.tensor([[0, 5, 1535], [9, 9, 100]])
+    torch.testing.assert_close(dist.log_prob_at_index(idx, level), torch.log_softmax(ref, 1).gather(1, idx),
+                               atol=1e-9, rtol=0)
+    torch.testing.assert_close(dist.log_prob_at_index(idx[0], level), torch.log_softmax(ref, 1)[:, idx[0]],
+                               atol=1e-9, rtol=0)
+
+
+def test_log_density_reads_the_nearest_grid_point():
+    B, level = 3, 2
+    R0 = haar_rotations(B, seed=4)
+    dist = peaked(R0, scale=0.05)
+    N = 72 * 8**level
+    log_p = torch.log_softmax(reference_dense_grid_logits(dist.coeffs, LMAX, level), dim=1)  # [B, N]
+    grid = so3_healpix_grid(level, dtype=torch.float64)
+    # at R0 itself: (B, 1, 3, 3) queries
+    ld0 = dist.log_density(R0[:, None], level)
+    nearest = brute_force_nearest(R0, grid)  # [B]
+    expected = log_p.gather(1, nearest[:, None]) + math.log(N / math.pi**2)
+    torch.testing.assert_close(ld0, expected, atol=1e-9, rtol=0)
+    # shared random queries (K, 3, 3)
+    Q = haar_rotations(20, seed=5)
+    nq = brute_force_nearest(Q, grid)
+    torch.testing.assert_close(dist.log_density(Q, level), log_p[:, nq] + math.log(N / math.pi**2), atol=1e-9,
+                               rtol=0)
+    # the peak is denser than the antipode (rotation by pi away) and than uniform
+    far = dist.log_density((R0 @ FLIP)[:, None], level)
+    assert torch.all(ld0 > far + 1.0)
+    assert torch.all(ld0 > LOG_UNIFORM_DENSITY)
+    assert torch.all(far < LOG_UNIFORM_DENSITY)
+    # normalised: the mean of exp(log density) over the grid cells is 1 / pi^2 per unit volume
+    cell = math.pi**2 / N
+    ld_grid = dist.log_density(grid, level)
+    torch.testing.assert_close((ld_grid.exp() * cell).sum(1), torch.ones(B, dtype=torch.float64), atol=1e-9,
+                               rtol=0)
+
+
+# ---------------------------------------------------------------------------------- mode
+@pytest.mark.parametrize("level", [1, 2, 3])
+def test_mode_is_nearest_grid_point(level):
+    R0 = haar_rotations(4, seed=10 + level)
+    dist = peaked(R0)
+    mode = dist.mode(level)
+    assert mode.shape == (4, 3, 3) and mode.dtype == torch.float64
+    nearest = so3_healpix_nearest_index(R0, level)
+    torch.testing.assert_close(mode, so3_healpix_index_to_matrix(nearest, level, dtype=torch.float64), atol=1e-12,
+                               rtol=0)
+    # within the grid's covering radius (~ 60 / 2**level degrees)
+    err = torch.rad2deg(geodesic_distance(mode, R0))
+    assert torch.all(err < 55.0 / 2**level), err
+
+
+@pytest.mark.parametrize("level", [2, 3])
+def test_mode_refined(level):
+    R0 = haar_rotations(4, seed=20 + level)
+    dist = peaked(R0)
+    coarse = torch.rad2deg(geodesic_distance(dist.mode(level), R0))
+    refined = dist.mode(level, refine=True)
+    fine = torch.rad2deg(geodesic_distance(refined, R0))
+    assert torch.all(fine < 0.5), fine
+    assert fine.mean() < coarse.mean() / 4
+    eye = torch.eye(3, dtype=torch.float64).expand_as(refined)
+    torch.testing.assert_close(refined.transpose(-1, -2) @ refined, eye, atol=1e-10, rtol=0)
+    # float32 coefficients work too
+    d32 = SO3Distribution(dist.coeffs.float(), LMAX)
+    fine32 = torch.rad2deg(geodesic_distance(d32.mode(level, refine=True).double(), R0))
+    assert torch.all(fine32 < 1.0), fine32
+
+
+# ---------------------------------------------------------------------------------- sampling
+def test_sample_matches_grid_softmax():
+    level, n = 1, 40000
+    R0 = haar_rotations(2, seed=30)
+    dist = peaked(R0, scale=0.05)  # logits spread ~ +-20: peaked but many bins populated
+    p = torch.softmax(reference_dense_grid_logits(dist.coeffs, LMAX, level), dim=1)  # [2, 576]
+    rot, idx = dist.sample(n, level, generator=torch.Generator().manual_seed(0), return_index=True)
+    assert rot.shape == (2, n, 3, 3) and idx.shape == (2, n)
+    assert idx.dtype == torch.long and idx.min() >= 0 and idx.max() < 576
+    freq = torch.stack([torch.bincount(i, minlength=576) for i in idx]).double() / n
+    tv = 0.5 * (freq - p).abs().sum(dim=1)
+    # expected TV under exact sampling is ~ 0.5 * sum sqrt(2 p (1 - p) / (pi n))
+    expected_tv = 0.5 * torch.sqrt(2 * p * (1 - p) / (math.pi * n)).sum(dim=1)
+    assert torch.all(tv < 0.03), tv
+    assert torch.all(tv < 2 * expected_tv), (tv, expected_tv)
+    # indices consistent with the rotations
+    grid = so3_healpix_grid(level, dtype=torch.float64)
+    torch.testing.assert_close(rot, grid[idx], atol=1e-12, rtol=0)
+    # the samples concentrate near R0
+    assert torch.all(p.gather(1, idx[:, :100]).mean() > 1.0 / 576)
+
+
+def test_sample_reproducible_and_shapes():
+    dist = peaked(haar_rotations(3, seed=31), scale=0.05)
+    a = dist.sample(50, 2, generator=torch.Generator().manual_seed(5))
+    b = dist.sample(50, 2, generator=torch.Generator().manual_seed(5))
+    c = dist.sample(50, 2, generator=torch.Generator().manual_seed(6))
+    assert a.shape == (3, 50, 3, 3)
+    assert torch.equal(a, b)
+    assert not torch.equal(a, c)
+    # same draws with return_index; the rotations are grid points that map back to their indices
+    r, idx = dist.sample(50, 2, generator=torch.Generator().manual_seed(5), return_index=True)
+    assert torch.equal(r, a)
+    assert torch.equal(so3_healpix_nearest_index(a, 2), idx)
+
+
+def test_sample_peaked_lands_on_mode():
+    R0 = haar_rotations(2, seed=32)
+    dist = peaked(R0, scale=3.0)  # very sharp: essentially all mass on the argmax
+    _, idx = dist.sample(200, 2, generator=torch.Generator().manual_seed(1), return_index=True)
+    mode_idx = so3_healpix_nearest_index(dist.mode(2), 2)
+    assert (idx == mode_idx[:, None]).double().mean() > 0.95
+
+
+# ---------------------------------------------------------------------------------- bad input
+def test_bad_input():
+    with pytest.raises(ValueError):
+        SO3Distribution(torch.zeros(2, 454), LMAX)
+    with pytest.raises(ValueError):
+        SO3Distribution(torch.zeros(455), LMAX)
+    with pytest.raises(ValueError):
+        SO3Distribution(torch.zeros(2, 455, dtype=torch.long), LMAX)
+    with pytest.raises(ValueError):
+        SO3Distribution(torch.zeros(2, 1), -1)
+    with pytest.raises(ValueError):
+        SO3Distribution(torch.zeros(2, 455), 6.0)
+    with pytest.raises(ValueError):
+        SO3Distribution([[0.0] * 455], LMAX)
+    dist = SO3Distribution(torch.zeros(2, 455), LMAX)
+    for query in (
+        2 * torch.eye(3)[None],  # not a rotation
+        torch.diag(torch.tensor([1.0, 1.0, -1.0]))[None],  # reflection
+        torch.eye(3)[None, None].expand(3, 4, 3, 3),  # B' = 3 != 2
+        torch.eye(3),  # missing K
+        torch.eye(3).expand(2, 2, 2, 3, 3),  # too many dims
+    ):
+        with pytest.raises(ValueError):
+            dist.logits(query)
+        with pytest.raises(ValueError):
+            dist.log_density(query, 1)
+    for n in (0, -3, 2.0, True):
+        with pytest.raises(ValueError):
+            dist.sample(n, 2)
+    for level in (-1, 11, 2.5):
+        with pytest.raises(ValueError):
+            dist.grid_logits(level)
+        with pytest.raises(ValueError):
+            dist.mode(level)

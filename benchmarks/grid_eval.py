@@ -34,16 +34,21 @@ import subprocess
 import sys
 import time
 
-import torch
+# Before torch's first allocation, as `import image2sphere` would do (see src/image2sphere/__init__.py):
+# both methods then get transparent huge pages for their large outputs, instead of first-touch page
+# faults dominating (and adding noise to) the full-grid timings.
+os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
 
-from image2sphere.so3 import (
+import torch  # noqa: E402
+
+from image2sphere.so3 import (  # noqa: E402
     flat_wigner_from_angles,
     n_so3_coeffs,
     so3_grid_size,
     so3_healpix_grid_angles,
     so3_healpix_index_to_angles,
 )
-from image2sphere.so3.grid_eval import MAX_OUTPUT_BYTES, HealpixGridEvaluator
+from image2sphere.so3.grid_eval import MAX_OUTPUT_BYTES, HealpixGridEvaluator  # noqa: E402
 
 DTYPE = torch.float32
 BYTES = 4  # float32
@@ -142,13 +147,20 @@ def peak_child(lmax: int, level: int, batch: int, op: str) -> None:
     print(json.dumps({"delta_bytes": (peak - rss0) * 1024}))
 
 
-def measure_peak(lmax: int, level: int, batch: int, op: str) -> int | None:
-    """Peak RSS increase (bytes) of one fast ``op`` call, in a subprocess; ``None`` if not measurable."""
+def measure_peak(lmax: int, level: int, batch: int, op: str, fixed_mmap: bool = False) -> int | None:
+    """Peak RSS increase (bytes) of one fast ``op`` call, in a subprocess; ``None`` if not measurable.
+
+    ``fixed_mmap``: run the child with ``MALLOC_MMAP_THRESHOLD_=1 MiB`` so that glibc returns every
+    freed large buffer to the OS at once; the peak then reflects the live tensors.
+    """
     if not sys.platform.startswith("linux"):
         return None
     cmd = [sys.executable, os.path.abspath(__file__), "--lmax", str(lmax), "--batch", str(batch)]
     cmd += ["--peak-child", str(level), op]
-    res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    env = dict(os.environ)
+    if fixed_mmap:
+        env["MALLOC_MMAP_THRESHOLD_"] = str(2**20)
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
     try:
         result = json.loads(res.stdout.strip().splitlines()[-1])
     except (IndexError, json.JSONDecodeError):
@@ -216,10 +228,8 @@ def bench_level(args, level: int, ref: dict) -> dict:
         checks.append(check_line("max vs dense", rel_err(max_f, max_d)))
         at_fast = dense_logits.gather(1, arg_f[:, None]).squeeze(1)  # dense value at the fast argmax
         same = int((arg_f == arg_d).sum())
-        checks.append(
-            f"  check argmax: {same}/{batch} indices identical; "
-            + check_line("dense value at fast argmax vs dense max", rel_err(at_fast, max_d)).strip()[6:]
-        )
+        checks.append(f"  check argmax: {same}/{batch} indices identical to the dense argmax")
+        checks.append(check_line("dense logit at the fast argmax vs dense max", rel_err(at_fast, max_d)))
         if level >= ref.get("level", -1):  # extrapolate from the largest level where D was built
             ref.update(level=level, N=N, build=r["dense_build"], mm=r["dense_logits"], lse=r["dense_lse"])
         del dense_logits
@@ -248,9 +258,7 @@ def bench_level(args, level: int, ref: dict) -> dict:
         checks.append(check_line("max vs float64 Wigner at its argmax", rel_err(max_f, max_ref)))
         if fast_logits is not None:
             checks.append(
-                check_line(
-                    "logsumexp vs torch.logsumexp(fast logits)", rel_err(lse_f, fast_logits.logsumexp(1))
-                )
+                check_line("logsumexp vs torch.logsumexp(fast logits)", rel_err(lse_f, fast_logits.logsumexp(1)))
             )
             same = int((arg_f == fast_logits.argmax(1)).sum())
             checks.append(f"  check argmax: {same}/{batch} identical to argmax of fast full-grid logits")
@@ -261,9 +269,8 @@ def bench_level(args, level: int, ref: dict) -> dict:
     # 4. peak memory (fast: measured in subprocesses; dense: analytic lower bound)
     if not args.no_peak:
         r["peak_fast_lse"] = measure_peak(lmax, level, batch, "lse")
-        r["peak_fast_logits"] = (
-            measure_peak(lmax, level, batch, "logits") if out_bytes <= MAX_OUTPUT_BYTES else None
-        )
+        r["peak_fast_lse_mmap"] = measure_peak(lmax, level, batch, "lse", fixed_mmap=True)
+        r["peak_fast_logits"] = measure_peak(lmax, level, batch, "logits") if out_bytes <= MAX_OUTPUT_BYTES else None
     r["dense_working"] = r["dense_bytes"] + out_bytes  # matrix + (B, N) logits, both paths
 
     print_level_table(r, batch)
@@ -275,7 +282,7 @@ def bench_level(args, level: int, ref: dict) -> dict:
 def print_level_table(r: dict, batch: int) -> None:
     ex = r.get("dense_extrapolated", False)
     note = f"  (~ = extrapolated linearly in N from level {r['ref_level']})" if ex else ""
-    w = 40
+    w = 42
     print(f"  {'':{w}}{'fast':>14}{'dense':>16}{'dense/fast':>14}{note}")
     rows = [
         ("operator build time [s]", r["fast_build"], r.get("dense_build"), ex, 3),
@@ -285,21 +292,21 @@ def print_level_table(r: dict, batch: int) -> None:
     ]
     for name, f, d, approx, digits in rows:
         print(
-            f"  {name:{w}}{fmt_num(f, digits=digits):>14}{fmt_num(d, approx, digits):>16}"
-            f"{fmt_ratio(d, f, approx):>14}"
+            f"  {name:{w}}{fmt_num(f, digits=digits):>14}{fmt_num(d, approx, digits):>16}{fmt_ratio(d, f, approx):>14}"
         )
     if "peak_fast_lse" in r:
-        dense_note = "(dense: >= matrix + logits, analytic)"
+        dense = r["dense_working"]
+        peak_rows = [
+            ("peak RSS incr., lse+argmax [MB] (a)", r["peak_fast_lse"]),
+            ("peak RSS incr., lse+argmax [MB] (b)", r["peak_fast_lse_mmap"]),
+            ("peak RSS incr., full-grid logits [MB] (a)", r["peak_fast_logits"]),
+        ]
+        for name, f in peak_rows:
+            print(f"  {name:{w}}{fmt_mb(f):>14}{'>= ' + fmt_mb(dense):>16}{fmt_ratio(dense, f):>14}")
         print(
-            f"  {'peak RSS increase, lse+argmax [MB]':{w}}{fmt_mb(r['peak_fast_lse']):>14}"
-            f"{'>= ' + fmt_mb(r['dense_working']):>16}{fmt_ratio(r['dense_working'], r['peak_fast_lse']):>14}"
-            f"  {dense_note}"
-        )
-        print(
-            f"  {'peak RSS increase, logits [MB]':{w}}{fmt_mb(r['peak_fast_logits']):>14}"
-            f"{'>= ' + fmt_mb(r['dense_working']):>16}"
-            f"{fmt_ratio(r['dense_working'], r['peak_fast_logits']):>14}"
-            f"  (fast includes its {batch} x N output)"
+            "    peak RSS increase of one call in a fresh process (fast includes its output; dense: matrix +\n"
+            f"    {batch} x N logits, analytic lower bound). (a) default glibc malloc; (b) with\n"
+            "    MALLOC_MMAP_THRESHOLD_=1 MiB, so that freed blocks go back to the system at once (live tensors only)"
         )
 
 
@@ -309,9 +316,7 @@ def _ms(seconds: float | None) -> float | None:
 
 def print_summary(results: list[dict]) -> None:
     print("\n=== dense/fast ratios (higher = fast is better; ~ = dense side extrapolated) ===")
-    print(
-        f"  {'level':>5}{'build time':>14}{'operator size':>16}{'logits/image':>16}{'lse+argmax/image':>20}"
-    )
+    print(f"  {'level':>5}{'build time':>14}{'operator size':>16}{'logits/image':>16}{'lse+argmax/image':>20}")
     for r in results:
         ex = r.get("dense_extrapolated", False)
         print(
@@ -331,10 +336,7 @@ def print_summary(results: list[dict]) -> None:
     if r4 and r4.get("dense_logits") and r4.get("fast_logits"):
         ratio = r4["dense_logits"] / r4["fast_logits"]
         approx = "~" if r4.get("dense_extrapolated") else ""
-        print(
-            f"  full-grid logits at level 4 >= 5x faster than dense: {approx}{ratio:.1f}x "
-            f"-> {verdict(ratio >= 5)}"
-        )
+        print(f"  full-grid logits at level 4 >= 5x faster than dense: {approx}{ratio:.1f}x -> {verdict(ratio >= 5)}")
     else:
         print("  full-grid logits at level 4 >= 5x faster than dense: not evaluated (level 4 not run)")
 
@@ -365,11 +367,20 @@ def print_summary(results: list[dict]) -> None:
                 f"-> {verdict(ok)}"
             )
         else:
-            print(
-                "  level-5 lse+argmax faster than the dense matmul alone: not evaluated (no dense reference)"
-            )
+            print("  level-5 lse+argmax faster than the dense matmul alone: not evaluated (no dense reference)")
     else:
         print("  level-5 targets: not evaluated (level 5 not run)")
+
+
+def load_line(when: str) -> str:
+    """1-minute load average, with a warning when other processes compete for the cores."""
+    if not hasattr(os, "getloadavg"):
+        return f"load average {when}: n/a"
+    load, cores = os.getloadavg()[0], os.cpu_count() or 1
+    line = f"load average {when}: {load:.2f} ({cores} cores)"
+    if load > 1.0:
+        line += " -- WARNING: other processes use the CPUs; multi-threaded timings can be several times slower"
+    return line
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -379,9 +390,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--repeats", type=int, default=3, help="timed repeats (median) after one warm-up")
     p.add_argument("--build-repeats", type=int, default=3, help="fast operator builds timed (median)")
-    p.add_argument(
-        "--dense-level5", action="store_true", help="really build the 4.3 GB dense matrix at level 5"
-    )
+    p.add_argument("--dense-level5", action="store_true", help="really build the 4.3 GB dense matrix at level 5")
     p.add_argument("--no-peak", action="store_true", help="skip the peak-RSS subprocesses")
     p.add_argument("--peak-child", nargs=2, metavar=("LEVEL", "OP"), help=argparse.SUPPRESS)
     return p.parse_args(argv)
@@ -394,18 +403,18 @@ def main(argv=None) -> None:
         return
     levels = sorted(set(args.levels))
     if any(lv > MAX_DENSE_LEVEL for lv in levels):
-        print(
-            f"note: the dense matrix is never built above level {MAX_DENSE_LEVEL}; it is extrapolated there"
-        )
+        print(f"note: the dense matrix is never built above level {MAX_DENSE_LEVEL}; it is extrapolated there")
     t_start = time.perf_counter()
     print(
         f"image2sphere grid evaluation benchmark: torch {torch.__version__}, "
-        f"{torch.get_num_threads()} threads, lmax {args.lmax}, levels {levels}, batch {args.batch}, float32"
+        f"{torch.get_num_threads()} threads, lmax {args.lmax}, levels {levels}, batch {args.batch}, float32, "
+        f"THP_MEM_ALLOC_ENABLE={os.environ.get('THP_MEM_ALLOC_ENABLE')}"
     )
     print(
         f"timings: median of {args.repeats} runs after 1 warm-up "
         f"(fast build: median of {args.build_repeats}; dense build: 1 run); per-image = batch time / batch"
     )
+    print(load_line("at start"))
     # one-time costs (e3nn init, lazy imports) paid before anything is timed
     HealpixGridEvaluator(args.lmax, 0, dtype=DTYPE)
     build_dense(args.lmax, 0)
@@ -422,7 +431,7 @@ def main(argv=None) -> None:
         del D
     results = [bench_level(args, level, ref) for level in levels]
     print_summary(results)
-    print(f"\ntotal benchmark time: {time.perf_counter() - t_start:.0f} s")
+    print(f"\ntotal benchmark time: {time.perf_counter() - t_start:.0f} s; {load_line('at end')}")
 
 
 if __name__ == "__main__":

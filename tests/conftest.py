@@ -19,14 +19,18 @@ from image2sphere.so3.wigner import default_dtype
 
 
 @pytest.fixture
-def rng() -> torch.Generator:
-    """A freshly seeded CPU generator (same stream in every test)."""
-    return torch.Generator().manual_seed(1234)
+def single_thread():
+    """Run a test with one intra-op thread (restored afterwards).
 
-
-@pytest.fixture
-def np_rng() -> np.random.Generator:
-    return np.random.default_rng(1234)
+    Loops of many tiny ops (e.g. ``SO3Distribution.mode(refine=True)``) slow down ~100x when torch's
+    thread pool competes with other processes for the cores; one thread makes them robust.
+    """
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
 
 
 def haar_rotations(n: int, seed: int = 0, dtype: torch.dtype = torch.float64) -> torch.Tensor:
@@ -41,9 +45,7 @@ def reference_flat_wigner(lmax: int, R: torch.Tensor) -> torch.Tensor:
     with default_dtype(torch.float64):
         R = R.to(torch.float64)
         angles = o3.matrix_to_angles(R)
-        blocks = [
-            math.sqrt(2 * l + 1) * o3.wigner_D(l, *angles).reshape(*R.shape[:-2], -1) for l in range(lmax + 1)
-        ]
+        blocks = [math.sqrt(2 * l + 1) * o3.wigner_D(l, *angles).reshape(*R.shape[:-2], -1) for l in range(lmax + 1)]
     return torch.cat(blocks, dim=-1)
 
 

@@ -6,8 +6,8 @@ import math
 
 import pytest
 import torch
-from conftest import brute_force_nearest, haar_rotations, reference_dense_grid_logits, reference_flat_wigner
 
+from conftest import brute_force_nearest, haar_rotations, reference_dense_grid_logits, reference_flat_wigner
 from image2sphere.so3 import (
     LOG_UNIFORM_DENSITY,
     SO3Distribution,
@@ -38,16 +38,16 @@ def test_uniform_distribution(level):
     R = haar_rotations(10, seed=level)
     ld = dist.log_density(R, level)
     assert ld.shape == (B, 10)
-    torch.testing.assert_close(ld, torch.full((B, 10), -math.log(math.pi**2), dtype=torch.float64), atol=1e-10,
-                               rtol=0)
+    torch.testing.assert_close(ld, torch.full((B, 10), -math.log(math.pi**2), dtype=torch.float64), atol=1e-10, rtol=0)
     N = 72 * 8**level
     logits = dist.grid_logits(level)
     assert logits.shape == (B, N)
     lp = dist.log_prob_grid(level)
     torch.testing.assert_close(lp.exp().sum(dim=1), torch.ones(B, dtype=torch.float64), atol=1e-10, rtol=0)
     torch.testing.assert_close(lp, torch.full((B, N), -math.log(N), dtype=torch.float64), atol=1e-10, rtol=0)
-    torch.testing.assert_close(dist.log_normalizer(level), torch.full((B,), math.log(N), dtype=torch.float64),
-                               atol=1e-10, rtol=0)
+    torch.testing.assert_close(
+        dist.log_normalizer(level), torch.full((B,), math.log(N), dtype=torch.float64), atol=1e-10, rtol=0
+    )
 
 
 def test_uniform_float32():
@@ -86,10 +86,12 @@ def test_grid_values_match_dense_reference():
     torch.testing.assert_close(dist.log_prob_grid(level), torch.log_softmax(ref, 1), atol=1e-9, rtol=0)
     torch.testing.assert_close(dist.log_normalizer(level), torch.logsumexp(ref, 1), atol=1e-9, rtol=0)
     idx = torch.tensor([[0, 5, 1535], [9, 9, 100]])
-    torch.testing.assert_close(dist.log_prob_at_index(idx, level), torch.log_softmax(ref, 1).gather(1, idx),
-                               atol=1e-9, rtol=0)
-    torch.testing.assert_close(dist.log_prob_at_index(idx[0], level), torch.log_softmax(ref, 1)[:, idx[0]],
-                               atol=1e-9, rtol=0)
+    torch.testing.assert_close(
+        dist.log_prob_at_index(idx, level), torch.log_softmax(ref, 1).gather(1, idx), atol=1e-9, rtol=0
+    )
+    torch.testing.assert_close(
+        dist.log_prob_at_index(idx[0], level), torch.log_softmax(ref, 1)[:, idx[0]], atol=1e-9, rtol=0
+    )
 
 
 def test_log_density_reads_the_nearest_grid_point():
@@ -107,8 +109,7 @@ def test_log_density_reads_the_nearest_grid_point():
     # shared random queries (K, 3, 3)
     Q = haar_rotations(20, seed=5)
     nq = brute_force_nearest(Q, grid)
-    torch.testing.assert_close(dist.log_density(Q, level), log_p[:, nq] + math.log(N / math.pi**2), atol=1e-9,
-                               rtol=0)
+    torch.testing.assert_close(dist.log_density(Q, level), log_p[:, nq] + math.log(N / math.pi**2), atol=1e-9, rtol=0)
     # the peak is denser than the antipode (rotation by pi away) and than uniform
     far = dist.log_density((R0 @ FLIP)[:, None], level)
     assert torch.all(ld0 > far + 1.0)
@@ -117,8 +118,21 @@ def test_log_density_reads_the_nearest_grid_point():
     # normalised: the mean of exp(log density) over the grid cells is 1 / pi^2 per unit volume
     cell = math.pi**2 / N
     ld_grid = dist.log_density(grid, level)
-    torch.testing.assert_close((ld_grid.exp() * cell).sum(1), torch.ones(B, dtype=torch.float64), atol=1e-9,
-                               rtol=0)
+    torch.testing.assert_close((ld_grid.exp() * cell).sum(1), torch.ones(B, dtype=torch.float64), atol=1e-9, rtol=0)
+
+
+def test_log_prob_gradients_match_dense():
+    """The training loss (log p at the label's grid index) has the gradient of the dense log-softmax."""
+    level = 1
+    coeffs = torch.randn(2, 455, dtype=torch.float64, generator=torch.Generator().manual_seed(6))
+    R = haar_rotations(2, seed=7)
+    a = coeffs.clone().requires_grad_(True)
+    b = coeffs.clone().requires_grad_(True)
+    SO3Distribution(a, LMAX).log_density(R[:, None], level).sum().backward()
+    idx = brute_force_nearest(R, so3_healpix_grid(level, dtype=torch.float64))
+    torch.log_softmax(reference_dense_grid_logits(b, LMAX, level), 1).gather(1, idx[:, None]).sum().backward()
+    torch.testing.assert_close(a.grad, b.grad, atol=1e-10, rtol=0)
+    assert a.grad.abs().max() > 1e-3
 
 
 # ---------------------------------------------------------------------------------- mode
@@ -129,14 +143,16 @@ def test_mode_is_nearest_grid_point(level):
     mode = dist.mode(level)
     assert mode.shape == (4, 3, 3) and mode.dtype == torch.float64
     nearest = so3_healpix_nearest_index(R0, level)
-    torch.testing.assert_close(mode, so3_healpix_index_to_matrix(nearest, level, dtype=torch.float64), atol=1e-12,
-                               rtol=0)
+    torch.testing.assert_close(
+        mode, so3_healpix_index_to_matrix(nearest, level, dtype=torch.float64), atol=1e-12, rtol=0
+    )
     # within the grid's covering radius (~ 60 / 2**level degrees)
     err = torch.rad2deg(geodesic_distance(mode, R0))
     assert torch.all(err < 55.0 / 2**level), err
 
 
 @pytest.mark.parametrize("level", [2, 3])
+@pytest.mark.usefixtures("single_thread")
 def test_mode_refined(level):
     R0 = haar_rotations(4, seed=20 + level)
     dist = peaked(R0)
@@ -157,22 +173,33 @@ def test_mode_refined(level):
 def test_sample_matches_grid_softmax():
     level, n = 1, 40000
     R0 = haar_rotations(2, seed=30)
-    dist = peaked(R0, scale=0.05)  # logits spread ~ +-20: peaked but many bins populated
+    dist = peaked(R0, scale=0.01)  # a broad peak: ~200-300 of the 576 grid points carry the mass
     p = torch.softmax(reference_dense_grid_logits(dist.coeffs, LMAX, level), dim=1)  # [2, 576]
     rot, idx = dist.sample(n, level, generator=torch.Generator().manual_seed(0), return_index=True)
     assert rot.shape == (2, n, 3, 3) and idx.shape == (2, n)
     assert idx.dtype == torch.long and idx.min() >= 0 and idx.max() < 576
-    freq = torch.stack([torch.bincount(i, minlength=576) for i in idx]).double() / n
+    counts = torch.stack([torch.bincount(i, minlength=576) for i in idx]).double()
+    freq = counts / n
+    # total variation: under exact sampling E[TV] ~ 0.5 * sum sqrt(2 p (1 - p) / (pi n)) (~0.047 here),
+    # with a spread of a few percent of that
     tv = 0.5 * (freq - p).abs().sum(dim=1)
-    # expected TV under exact sampling is ~ 0.5 * sum sqrt(2 p (1 - p) / (pi n))
     expected_tv = 0.5 * torch.sqrt(2 * p * (1 - p) / (math.pi * n)).sum(dim=1)
-    assert torch.all(tv < 0.03), tv
-    assert torch.all(tv < 2 * expected_tv), (tv, expected_tv)
+    assert torch.all(tv < 1.25 * expected_tv), (tv, expected_tv)
+    # on the 48 pixels (gamma marginal) the TV is small in absolute terms
+    pix_tv = 0.5 * (freq.reshape(2, 48, 12).sum(2) - p.reshape(2, 48, 12).sum(2)).abs().sum(1)
+    assert torch.all(pix_tv < 0.03), pix_tv
+    # chi-square over the bins with expected count >= 5
+    for b in range(2):
+        keep = n * p[b] >= 5
+        k = int(keep.sum())
+        chi2 = ((counts[b, keep] - n * p[b, keep]) ** 2 / (n * p[b, keep])).sum().item()
+        assert k > 100
+        assert chi2 < k + 5 * math.sqrt(2 * k), (chi2, k)
+    # E[p(X)] = sum p^2
+    torch.testing.assert_close(p.gather(1, idx).mean(1), (p**2).sum(1), atol=0, rtol=0.05)
     # indices consistent with the rotations
     grid = so3_healpix_grid(level, dtype=torch.float64)
     torch.testing.assert_close(rot, grid[idx], atol=1e-12, rtol=0)
-    # the samples concentrate near R0
-    assert torch.all(p.gather(1, idx[:, :100]).mean() > 1.0 / 576)
 
 
 def test_sample_reproducible_and_shapes():

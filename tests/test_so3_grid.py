@@ -8,9 +8,9 @@ import healpy
 import numpy as np
 import pytest
 import torch
-from conftest import brute_force_nearest, haar_rotations, reference_grid, reference_grid_angles
 from e3nn import o3
 
+from conftest import brute_force_nearest, haar_rotations, reference_grid, reference_grid_angles
 from image2sphere.so3 import (
     MAX_LEVEL,
     check_level,
@@ -70,13 +70,18 @@ def test_grid_angles_consistent(level):
     np.testing.assert_allclose(a.numpy(), ra, atol=1e-15)
     np.testing.assert_allclose(b.numpy(), rb, atol=1e-15)
     np.testing.assert_allclose(g.numpy(), rg, atol=1e-15)
-    torch.testing.assert_close(o3.angles_to_matrix(a, b, g), so3_healpix_grid(level, dtype=torch.float64),
-                               atol=1e-13, rtol=0)
+    torch.testing.assert_close(
+        o3.angles_to_matrix(a, b, g), so3_healpix_grid(level, dtype=torch.float64), atol=1e-13, rtol=0
+    )
     # gamma spacing uniform, 2 pi / (6 nside), and the fibre wraps around
     n_pix, n_gamma = so3_grid_size(level)
     gam = g.reshape(n_pix, n_gamma)
-    torch.testing.assert_close(gam.diff(dim=1), torch.full((n_pix, n_gamma - 1), 2 * math.pi / n_gamma,
-                                                           dtype=torch.float64), atol=1e-13, rtol=0)
+    torch.testing.assert_close(
+        gam.diff(dim=1),
+        torch.full((n_pix, n_gamma - 1), 2 * math.pi / n_gamma, dtype=torch.float64),
+        atol=1e-13,
+        rtol=0,
+    )
     assert torch.all(gam[:, 0] == 0)
     # alpha, beta constant along the fibre
     assert torch.all(a.reshape(n_pix, n_gamma).diff(dim=1) == 0)
@@ -109,9 +114,7 @@ def test_equal_pixel_areas():
         nside = 2**level
         n_pix, n_gamma = so3_grid_size(level)
         assert healpy.nside2pixarea(nside) == pytest.approx(4 * math.pi / n_pix, rel=1e-14)
-        assert healpy.nside2pixarea(nside) * (2 * math.pi / n_gamma) * n_pix * n_gamma / 8 == pytest.approx(
-            math.pi**2
-        )
+        assert healpy.nside2pixarea(nside) * (2 * math.pi / n_gamma) * n_pix * n_gamma / 8 == pytest.approx(math.pi**2)
 
 
 def test_equivolumetric_monte_carlo():
@@ -295,3 +298,9 @@ def test_check_level_accepts():
     assert check_level(0) == 0
     assert check_level(MAX_LEVEL) == MAX_LEVEL
     assert MAX_LEVEL == 10
+
+
+@pytest.mark.parametrize("bad", [torch.tensor([-1]), torch.tensor([72 * 8]), torch.tensor([1.0])])
+def test_gamma_major_to_pixel_major_rejects_bad_indices(bad):
+    with pytest.raises(ValueError, match="grid indices"):
+        gamma_major_to_pixel_major(bad, 1)

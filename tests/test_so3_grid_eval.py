@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import reference_dense_grid_logits, reference_flat_wigner
 
+from conftest import reference_dense_grid_logits, reference_flat_wigner
 from image2sphere.so3 import (
     HealpixGridEvaluator,
     dense_grid_logits,
@@ -96,8 +96,9 @@ def test_logits_of_delta_signal_peak_at_grid_point():
     c = flat_wigner(lmax, G[idx])
     logits = get_grid_evaluator(lmax, level, torch.float64).logits(c)
     assert torch.equal(logits.argmax(dim=1), idx)
-    torch.testing.assert_close(logits.max(dim=1).values, torch.full((4,), 455.0, dtype=torch.float64),
-                               atol=1e-9, rtol=0)
+    torch.testing.assert_close(
+        logits.max(dim=1).values, torch.full((4,), 455.0, dtype=torch.float64), atol=1e-9, rtol=0
+    )
 
 
 # ---------------------------------------------------------------------------------- streamed reductions
@@ -282,3 +283,21 @@ def test_evaluator_at_arbitrary_rotations_consistency():
     idx = torch.tensor([1, 400, 1535])
     G = so3_healpix_grid(level, dtype=torch.float64)[idx]
     torch.testing.assert_close(ev.logits_at(c, idx), c @ reference_flat_wigner(lmax, G).T, atol=1e-10, rtol=0)
+
+
+def test_gamma_logits_rejects_out_of_range_pixels():
+    ev = get_grid_evaluator(2, 1, torch.float64)
+    c = random_coeffs(2, batch=2)
+    with pytest.raises(ValueError, match="pixel indices"):
+        ev.gamma_logits(c, torch.tensor([[-1], [0]]))
+    with pytest.raises(ValueError, match="pixel indices"):
+        ev.gamma_logits(c, torch.tensor([[ev.n_pix], [0]]))
+
+
+def test_gamma_logits_accepts_shared_pixels():
+    ev = get_grid_evaluator(2, 1, torch.float64)
+    c = random_coeffs(2, batch=2)
+    pix = torch.tensor([3, 17, 47])
+    torch.testing.assert_close(ev.gamma_logits(c, pix), ev.gamma_logits(c, pix[None].expand(2, -1)))
+    full = ev.logits(c).view(2, ev.n_pix, ev.n_gamma)
+    torch.testing.assert_close(ev.gamma_logits(c, pix), full[:, pix])

@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import haar_rotations
 from e3nn import o3
 from scipy.spatial.transform import Rotation
 
+from conftest import haar_rotations
 from image2sphere.so3 import (
     angles_to_matrix,
     check_rotation_matrix,
@@ -50,8 +50,10 @@ def test_geodesic_distance_matches_scipy():
 
 def test_geodesic_distance_exact_values():
     R = haar_rotations(5, seed=3)
-    assert torch.equal(geodesic_distance(torch.eye(3, dtype=torch.float64), torch.eye(3, dtype=torch.float64)),
-                       torch.tensor(0.0, dtype=torch.float64))
+    assert torch.equal(
+        geodesic_distance(torch.eye(3, dtype=torch.float64), torch.eye(3, dtype=torch.float64)),
+        torch.tensor(0.0, dtype=torch.float64),
+    )
     d0 = geodesic_distance(R, R)
     assert torch.all(d0 >= 0)
     assert torch.all(d0 < 1e-7)
@@ -63,8 +65,7 @@ def test_geodesic_distance_exact_values():
     assert geodesic_distance(eye, FLIP).item() == pytest.approx(math.pi, abs=1e-15)
     # a rotation by a known angle about z
     t = 0.7
-    Rz = torch.tensor([[math.cos(t), -math.sin(t), 0], [math.sin(t), math.cos(t), 0], [0, 0, 1]],
-                      dtype=torch.float64)
+    Rz = torch.tensor([[math.cos(t), -math.sin(t), 0], [math.sin(t), math.cos(t), 0], [0, 0, 1]], dtype=torch.float64)
     assert geodesic_distance(eye, Rz).item() == pytest.approx(t, abs=1e-12)
 
 
@@ -117,8 +118,7 @@ def test_quaternion_to_matrix_scalar_first_scipy():
         expected = Rotation.from_quat(q, scalar_first=True).as_matrix()
     except TypeError:  # scipy < 1.14
         pytest.skip("scipy without scalar_first")
-    np.testing.assert_allclose(quaternion_to_matrix(torch.as_tensor(q), order="wxyz").numpy(), expected,
-                               atol=1e-12)
+    np.testing.assert_allclose(quaternion_to_matrix(torch.as_tensor(q), order="wxyz").numpy(), expected, atol=1e-12)
 
 
 def test_quaternion_known_values_and_sign_invariance():
@@ -157,12 +157,14 @@ def test_angles_to_matrix_matches_e3nn_and_explicit_product():
     torch.testing.assert_close(R, o3.angles_to_matrix(a, b, c), atol=1e-14, rtol=0)
 
     def ry(t):
-        return torch.tensor([[math.cos(t), 0, math.sin(t)], [0, 1, 0], [-math.sin(t), 0, math.cos(t)]],
-                            dtype=torch.float64)
+        return torch.tensor(
+            [[math.cos(t), 0, math.sin(t)], [0, 1, 0], [-math.sin(t), 0, math.cos(t)]], dtype=torch.float64
+        )
 
     def rx(t):
-        return torch.tensor([[1, 0, 0], [0, math.cos(t), -math.sin(t)], [0, math.sin(t), math.cos(t)]],
-                            dtype=torch.float64)
+        return torch.tensor(
+            [[1, 0, 0], [0, math.cos(t), -math.sin(t)], [0, math.sin(t), math.cos(t)]], dtype=torch.float64
+        )
 
     for i in range(5):
         expected = ry(a[i].item()) @ rx(b[i].item()) @ ry(c[i].item())
@@ -361,3 +363,8 @@ def test_rotvec_to_matrix_gradient_at_zero():
     # exp([w]_x) v = v + w x v + O(w^2), and sum(w x v) = w . (v x 1)
     expected = torch.cross(v, torch.ones(3, dtype=torch.float64), dim=0)
     torch.testing.assert_close(w.grad, expected, atol=1e-12, rtol=0)
+
+
+def test_quaternion_to_matrix_rejects_integer_tensors():
+    with pytest.raises(ValueError, match="floating point"):
+        quaternion_to_matrix(torch.tensor([1, 0, 0, 0]), order="wxyz")

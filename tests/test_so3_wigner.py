@@ -6,19 +6,21 @@ import math
 
 import pytest
 import torch
-from conftest import haar_rotations, reference_flat_wigner
 from e3nn import o3
 from scipy.spatial.transform import Rotation
 
+from conftest import haar_rotations, reference_flat_wigner
 from image2sphere.so3 import (
     angles_to_matrix,
     check_lmax,
     flat_wigner,
     flat_wigner_from_angles,
+    left_translate_so3_coeffs,
     lmax_from_n_so3_coeffs,
     matrix_to_angles,
     n_s2_coeffs,
     n_so3_coeffs,
+    rotate_s2_coeffs,
     so3_layout,
     wigner_D,
 )
@@ -84,7 +86,7 @@ def test_so3_layout(lmax):
     assert l.shape == m.shape == n.shape == (N,)
     assert l.dtype == m.dtype == n.dtype == torch.long
     expected = [(ll, mm, nn) for ll in range(lmax + 1) for mm in range(2 * ll + 1) for nn in range(2 * ll + 1)]
-    assert list(zip(l.tolist(), m.tolist(), n.tolist())) == expected
+    assert list(zip(l.tolist(), m.tolist(), n.tolist(), strict=True)) == expected
     # consistent with flat_wigner: entry i is sqrt(2l+1) D^l[m, n]
     R = haar_rotations(4, seed=lmax)
     flat = flat_wigner(lmax, R)
@@ -109,8 +111,7 @@ def test_flat_wigner_length_455_and_batch_shapes():
     R = haar_rotations(24, seed=20).reshape(2, 3, 4, 3, 3)
     got = flat_wigner(6, R)
     assert got.shape == (2, 3, 4, 455)
-    torch.testing.assert_close(got.reshape(-1, 455), reference_flat_wigner(6, R.reshape(-1, 3, 3)), atol=1e-11,
-                               rtol=0)
+    torch.testing.assert_close(got.reshape(-1, 455), reference_flat_wigner(6, R.reshape(-1, 3, 3)), atol=1e-11, rtol=0)
     single = flat_wigner(6, R[0, 0, 0])
     assert single.shape == (455,)
     torch.testing.assert_close(single, got[0, 0, 0], atol=1e-13, rtol=0)
@@ -202,8 +203,9 @@ def test_so3_signal_of_a_delta_is_a_character_sum():
     expected = sum((2 * l + 1) * character(l, theta) for l in range(lmax + 1))
     torch.testing.assert_close(f, expected, atol=1e-9, rtol=0)
     # equivalently sum_l (2l+1) trace D^l(R0^T R)
-    via_trace = sum((2 * l + 1) * D.diagonal(dim1=-2, dim2=-1).sum(-1) for l, D in
-                    enumerate(blocks(flat_wigner(lmax, rel), lmax)))
+    via_trace = sum(
+        (2 * l + 1) * D.diagonal(dim1=-2, dim2=-1).sum(-1) for l, D in enumerate(blocks(flat_wigner(lmax, rel), lmax))
+    )
     torch.testing.assert_close(f, via_trace, atol=1e-9, rtol=0)
     # maximum n_so3_coeffs at R0, strictly smaller elsewhere
     f0 = flat_wigner(lmax, R0) @ c
@@ -222,3 +224,53 @@ def test_flat_wigner_rejects_non_rotations():
         flat_wigner(2, torch.eye(4))
     with pytest.raises(ValueError):
         flat_wigner(2, torch.diag(torch.tensor([1.0, 1.0, -1.0])))
+
+
+# ---------------------------------------------------------------------------------- rotating coefficients
+def test_left_translate_so3_coeffs():
+    """f'(g) = f(R^-1 g) for the left-translated coefficients, evaluated with e3nn Wigner matrices."""
+    lmax = 4
+    c = torch.randn(2, n_so3_coeffs(lmax), dtype=torch.float64, generator=torch.Generator().manual_seed(40))
+    R = haar_rotations(1, seed=41)[0]
+    g = haar_rotations(30, seed=42)
+    moved = left_translate_so3_coeffs(c, R, lmax)
+    assert moved.shape == c.shape
+    got = reference_flat_wigner(lmax, g) @ moved.T
+    expected = reference_flat_wigner(lmax, R.T @ g) @ c.T
+    torch.testing.assert_close(got, expected, atol=1e-10, rtol=0)
+    # a group action: translating by R1 then R2 equals translating by R2 R1; identity does nothing
+    R2 = haar_rotations(1, seed=43)[0]
+    torch.testing.assert_close(
+        left_translate_so3_coeffs(moved, R2, lmax), left_translate_so3_coeffs(c, R2 @ R, lmax), atol=1e-11, rtol=0
+    )
+    eye = torch.eye(3, dtype=torch.float64)
+    torch.testing.assert_close(left_translate_so3_coeffs(c, eye, lmax), c, atol=1e-12, rtol=0)
+    with pytest.raises(ValueError):
+        left_translate_so3_coeffs(c[:, :-1], R, lmax)
+    with pytest.raises(ValueError):
+        left_translate_so3_coeffs(c, 2 * eye, lmax)
+
+
+def test_rotate_s2_coeffs():
+    """x'(u) = x(R^-1 u) with e3nn real spherical harmonics (component normalisation)."""
+    lmax = 5
+    x = torch.randn(3, n_s2_coeffs(lmax), dtype=torch.float64, generator=torch.Generator().manual_seed(44))
+    R = haar_rotations(1, seed=45)[0]
+    u = torch.nn.functional.normalize(
+        torch.randn(40, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(46)), dim=-1
+    )
+
+    def sh(v):
+        return o3.spherical_harmonics(list(range(lmax + 1)), v, normalize=True, normalization="component")
+
+    rotated = rotate_s2_coeffs(x, R, lmax)
+    assert rotated.shape == x.shape
+    torch.testing.assert_close(sh(u) @ rotated.T, sh(u @ R) @ x.T, atol=1e-10, rtol=0)  # u @ R = R^-1 u
+    with pytest.raises(ValueError):
+        rotate_s2_coeffs(x[:, :-1], R, lmax)
+
+
+@pytest.mark.parametrize("bad", [True, 455.0, 0, -3, "455"])
+def test_lmax_from_n_so3_coeffs_rejects_non_integers(bad):
+    with pytest.raises(ValueError, match="positive integer"):
+        lmax_from_n_so3_coeffs(bad)

@@ -122,16 +122,21 @@ class SO3Distribution:
         return self._refine(R0, steps, lr if lr is not None else spacing / 10)
 
     def _refine(self, R0: torch.Tensor, steps: int, lr: float) -> torch.Tensor:
+        # All bands at once, as block-diagonal matrices [B, n, n] with n = (lmax+1)^2: one matrix
+        # exponential per step instead of one per l (many tiny ops are slow on busy CPUs).
         coeffs = self.coeffs.detach()
         with torch.no_grad():
             angles = matrix_to_angles(R0)
-            blocks = []  # per l: (D^l(R0) [B, d, d], generators X^l [3, d, d], coefficients [B, d, d])
+            n = (self.lmax + 1) ** 2
+            D0 = coeffs.new_zeros(len(R0), n, n)  # D^l(R0) on the diagonal blocks
+            C = torch.zeros_like(D0)  # sqrt(2l+1) c^l on the diagonal blocks
+            X = coeffs.new_zeros(3, n, n)  # generators of every band
             offset = 0
             for l in range(self.lmax + 1):
-                d = 2 * l + 1
-                c = coeffs[:, offset : offset + d * d].reshape(-1, d, d) * math.sqrt(d)
-                X = o3.so3_generators(l).to(coeffs)
-                blocks.append((wigner_D(l, *angles), X, c))
+                d, s = 2 * l + 1, l * l
+                D0[:, s : s + d, s : s + d] = wigner_D(l, *angles)
+                C[:, s : s + d, s : s + d] = coeffs[:, offset : offset + d * d].reshape(-1, d, d) * math.sqrt(d)
+                X[:, s : s + d, s : s + d] = o3.so3_generators(l).to(coeffs)
                 offset += d * d
         w = torch.zeros(R0.shape[0], 3, dtype=coeffs.dtype, device=coeffs.device, requires_grad=True)
         optimizer = torch.optim.Adam([w], lr=lr)
@@ -139,11 +144,8 @@ class SO3Distribution:
         with torch.enable_grad():
             for _ in range(steps):
                 optimizer.zero_grad()
-                f = 0.0
-                for D0, X, c in blocks:
-                    D = D0 @ torch.linalg.matrix_exp(torch.einsum("bi,ijk->bjk", w, X))  # D^l(R0 exp(w))
-                    f = f + (c * D).sum(dim=(-1, -2))  # [B]
-                (-f.sum()).backward()
+                D = D0 @ torch.linalg.matrix_exp(torch.einsum("bi,ijk->bjk", w, X))  # D(R0 exp(w))  [B, n, n]
+                (-(C * D).sum()).backward()
                 optimizer.step()
                 schedule.step()
         return (R0 @ rotvec_to_matrix(w.detach())).detach()

@@ -93,6 +93,9 @@ def so3_healpix_grid(level: int, dtype: torch.dtype = torch.float32) -> torch.Te
 def gamma_major_to_pixel_major(index: torch.Tensor, level: int) -> torch.Tensor:
     """Convert grid indices of the original code's order (``k * npix + p``) to ours (``p * ngamma + k``)."""
     n_pix, n_gamma = so3_grid_size(level)
+    index = torch.as_tensor(index)
+    if index.is_floating_point() or index.dtype == torch.bool or ((index < 0) | (index >= n_pix * n_gamma)).any():
+        raise ValueError(f"grid indices must be integers in [0, {n_pix * n_gamma}) for level {level}")
     k, p = index // n_pix, index % n_pix
     return p * n_gamma + k
 

@@ -52,7 +52,7 @@ __all__ = [
 
 MAX_OPERATOR_BYTES = 4 * 2**30  # refuse to build operators larger than this
 MAX_OUTPUT_BYTES = 4 * 2**30  # refuse to materialise full-grid outputs larger than this
-_CHUNK_ELEMENTS = 2**23  # elements of one streamed [batch, pixels, gammas] block (32 MiB float32)
+_CHUNK_ELEMENTS = 2**19  # values of one streamed [batch, pixels, gammas] block (2 MiB float32: cache-sized)
 
 
 def _operator_numel(lmax: int, n_pix: int) -> int:
@@ -115,7 +115,8 @@ class HealpixGridEvaluator:
 
     @property
     def operator_bytes(self) -> int:
-        return sum(W.numel() * W.element_size() for W in self._weights) + self._basis.numel() * 4
+        tensors = [*self._weights, self._basis]
+        return sum(t.numel() * t.element_size() for t in tensors)
 
     # ------------------------------------------------------------------ helpers
     def _check(self, coeffs: torch.Tensor) -> torch.Tensor:
@@ -145,10 +146,39 @@ class HealpixGridEvaluator:
                 T[:, :, 2 * t - 1 : 2 * t + 1] = out.view(B, Pc, 2)
         return T
 
-    def _chunks(self, batch: int, chunk_pixels: int | None):
-        step = chunk_pixels or max(1, _CHUNK_ELEMENTS // max(1, batch * self.n_gamma))
+    def _pixel_reductions(self, coeffs: torch.Tensor, chunk_pixels: int | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Max and logsumexp over the gamma fibre of every pixel: two ``[B, P]`` tensors, streamed.
+
+        Stage 1 runs once for all pixels (``[B, P, 2L+1]``, a fraction ``(2L+1) / n_gamma`` of the
+        grid); stage 2 and the reductions run on pixel chunks of about ``_CHUNK_ELEMENTS`` values.
+        Without autograd each chunk is written into one reused buffer and reduced in place, so
+        nothing of chunk size is allocated per chunk and the process's memory stays flat.
+        """
+        B = coeffs.shape[0]
+        step = chunk_pixels or max(1, _CHUNK_ELEMENTS // max(1, B * self.n_gamma))
+        step = min(step, self.n_pix)
+        T = self._trig(self._gathered(coeffs), 0, self.n_pix)  # [B, P, 2L+1]
+        reuse = not (torch.is_grad_enabled() and coeffs.requires_grad)
+        if reuse:
+            buffer = coeffs.new_empty(B * step * self.n_gamma)
+            pix_max, pix_lse = coeffs.new_empty(B, self.n_pix), coeffs.new_empty(B, self.n_pix)
+        else:
+            maxes, lses = [], []
         for p0 in range(0, self.n_pix, step):
-            yield p0, min(self.n_pix, p0 + step)
+            p1 = min(self.n_pix, p0 + step)
+            if reuse:
+                x = buffer[: B * (p1 - p0) * self.n_gamma].view(B, p1 - p0, self.n_gamma)
+                torch.matmul(T[:, p0:p1], self._basis, out=x)  # [B, Pc, G]
+                m = x.amax(dim=2, keepdim=True)  # [B, Pc, 1], finite: the signal is a polynomial
+                pix_max[:, p0:p1] = m.squeeze(2)
+                pix_lse[:, p0:p1] = m.squeeze(2) + x.sub_(m).exp_().sum(dim=2).log()
+            else:
+                x = T[:, p0:p1] @ self._basis  # [B, Pc, G]
+                maxes.append(x.amax(dim=2))
+                lses.append(torch.logsumexp(x, dim=2))
+        if not reuse:
+            pix_max, pix_lse = torch.cat(maxes, dim=1), torch.cat(lses, dim=1)
+        return pix_max, pix_lse
 
     # ------------------------------------------------------------------ full grid
     def logits(self, coeffs: torch.Tensor, max_output_bytes: int = MAX_OUTPUT_BYTES) -> torch.Tensor:
@@ -167,13 +197,7 @@ class HealpixGridEvaluator:
 
     def pixel_logsumexp(self, coeffs: torch.Tensor, chunk_pixels: int | None = None) -> torch.Tensor:
         """``logsumexp`` over the gamma fibre of every pixel: ``(B, P)`` (the S2 marginal, unnormalised)."""
-        coeffs = self._check(coeffs)
-        g = self._gathered(coeffs)
-        parts = [
-            torch.logsumexp(self._trig(g, p0, p1) @ self._basis, dim=-1)
-            for p0, p1 in self._chunks(len(coeffs), chunk_pixels)
-        ]
-        return torch.cat(parts, dim=1)
+        return self._pixel_reductions(self._check(coeffs), chunk_pixels)[1]
 
     # ------------------------------------------------------------------ streamed reductions
     def logsumexp_and_max(
@@ -181,49 +205,43 @@ class HealpixGridEvaluator:
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """One streamed pass: ``(logsumexp (B,), max value (B,), argmax index (B,))`` over the grid."""
         coeffs = self._check(coeffs)
-        g = self._gathered(coeffs)
-        lse, vals, idxs = [], [], []
-        for p0, p1 in self._chunks(len(coeffs), chunk_pixels):
-            x = (self._trig(g, p0, p1) @ self._basis).flatten(1)  # [B, Pc * G]
-            lse.append(torch.logsumexp(x, dim=1))
-            v, i = x.max(dim=1)
-            vals.append(v)
-            idxs.append(i + p0 * self.n_gamma)
-        vals_t = torch.stack(vals, dim=1)  # [B, chunks]
-        best = vals_t.argmax(dim=1, keepdim=True)
-        index = torch.stack(idxs, dim=1).gather(1, best).squeeze(1)
-        return torch.logsumexp(torch.stack(lse, dim=1), dim=1), vals_t.gather(1, best).squeeze(1), index
+        pix_max, pix_lse = self._pixel_reductions(coeffs, chunk_pixels)
+        value, pix = pix_max.max(dim=1)  # [B]
+        with torch.no_grad():  # the gamma of the best pixel: one fibre recomputed
+            k = self.gamma_logits(coeffs.detach(), pix[:, None])[:, 0].argmax(dim=1)  # [B]
+        return torch.logsumexp(pix_lse, dim=1), value, pix * self.n_gamma + k
 
     def logsumexp(self, coeffs: torch.Tensor, chunk_pixels: int | None = None) -> torch.Tensor:
         """``logsumexp`` of the signal over the grid, ``(B,)``, streamed."""
-        coeffs = self._check(coeffs)
-        g = self._gathered(coeffs)
-        parts = [
-            torch.logsumexp((self._trig(g, p0, p1) @ self._basis).flatten(1), dim=1)
-            for p0, p1 in self._chunks(len(coeffs), chunk_pixels)
-        ]
-        return torch.logsumexp(torch.stack(parts, dim=1), dim=1)
+        return torch.logsumexp(self.pixel_logsumexp(coeffs, chunk_pixels), dim=1)
+
+    def _batched_index(self, index, B: int, upper: int, what: str) -> torch.Tensor:
+        """``(K,)`` or ``(B, K)`` integer indices in ``[0, upper)`` -> ``(B, K)`` on this device."""
+        index = torch.as_tensor(index, device=self.device)
+        if index.ndim == 1:
+            index = index[None].expand(B, -1)
+        if index.ndim != 2 or index.shape[0] != B or index.is_floating_point() or index.dtype == torch.bool:
+            raise ValueError(
+                f"{what} must be integers of shape (K,) or ({B}, K), got {tuple(index.shape)} {index.dtype}"
+            )
+        if ((index < 0) | (index >= upper)).any():
+            raise ValueError(f"{what} must lie in [0, {upper}) for level {self.level}")
+        return index
 
     def logits_at(self, coeffs: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
         """Signal at grid indices ``index`` ``(B, K)`` (or ``(K,)`` shared by the batch): ``(B, K)``."""
         coeffs = self._check(coeffs)
-        B = coeffs.shape[0]
-        index = torch.as_tensor(index, device=self.device)
-        if index.ndim == 1:
-            index = index[None].expand(B, -1)
-        if index.ndim != 2 or index.shape[0] != B or index.is_floating_point():
-            raise ValueError(f"index must be integer (K,) or ({B}, K), got {tuple(index.shape)} {index.dtype}")
-        if ((index < 0) | (index >= self.n_points)).any():
-            raise ValueError(f"grid indices must lie in [0, {self.n_points}) for level {self.level}")
+        index = self._batched_index(index, coeffs.shape[0], self.n_points, "grid indices")
         pix, k = index // self.n_gamma, index % self.n_gamma  # [B, K]
         T = self._trig_at(coeffs, pix)  # [B, K, 2L+1]
         basis = self._basis[:, k].permute(1, 2, 0)  # [B, K, 2L+1]
         return (T * basis).sum(-1)
 
     def gamma_logits(self, coeffs: torch.Tensor, pix: torch.Tensor) -> torch.Tensor:
-        """Signal on the whole gamma fibre of pixels ``pix`` ``(B, K)``: ``(B, K, n_gamma)``."""
+        """Signal on the whole gamma fibre of pixels ``pix`` ``(B, K)`` or ``(K,)``: ``(B, K, n_gamma)``."""
         coeffs = self._check(coeffs)
-        return self._trig_at(coeffs, torch.as_tensor(pix, device=self.device)) @ self._basis
+        pix = self._batched_index(pix, coeffs.shape[0], self.n_pix, "pixel indices")
+        return self._trig_at(coeffs, pix) @ self._basis
 
     def _trig_at(self, coeffs: torch.Tensor, pix: torch.Tensor) -> torch.Tensor:
         B, K = pix.shape
@@ -253,11 +271,17 @@ def get_grid_evaluator(
     return _cached(check_lmax(lmax), check_level(level), dtype, str(device))
 
 
-def dense_grid_logits(coeffs: torch.Tensor, lmax: int, level: int) -> torch.Tensor:
-    """Reference: ``coeffs @ flat_wigner(grid).T`` with the dense ``(N, n_coeffs)`` Wigner matrix, ``(B, N)``.
+def dense_grid_logits(coeffs: torch.Tensor, lmax: int, level: int, block_points: int = 2**16) -> torch.Tensor:
+    """Reference: ``coeffs @ flat_wigner(grid).T`` with the dense Wigner matrix, ``(B, N)``.
 
-    Only for tests and benchmarks: at level 5 the matrix is 4.3 GB.
+    The matrix is built and applied ``block_points`` rows at a time, so memory is the output plus
+    one block; the full matrix would be ``N x n_so3_coeffs`` (4.3 GB at level 5). Only for tests
+    and benchmarks: it costs ``n_so3_coeffs`` multiply-adds per point and image.
     """
     alpha, beta, gamma = so3_healpix_grid_angles(level, dtype=torch.float64)
-    D = flat_wigner_from_angles(lmax, alpha, beta, gamma).to(device=coeffs.device, dtype=coeffs.dtype)  # [N, n]
-    return coeffs @ D.T
+    out = coeffs.new_empty(coeffs.shape[0], len(alpha))
+    for start in range(0, len(alpha), block_points):
+        sl = slice(start, start + block_points)
+        D = flat_wigner_from_angles(lmax, alpha[sl], beta[sl], gamma[sl])  # [block, n]
+        out[:, sl] = coeffs @ D.to(device=coeffs.device, dtype=coeffs.dtype).T
+    return out

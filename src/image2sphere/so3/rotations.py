@@ -92,6 +92,8 @@ def quaternion_to_matrix(q: torch.Tensor, order: str) -> torch.Tensor:
         raise ValueError(f"order must be 'wxyz' or 'xyzw', got {order!r}")
     if q.ndim < 1 or q.shape[-1] != 4:
         raise ValueError(f"quaternions must have shape (..., 4), got {tuple(q.shape)}")
+    if not q.is_floating_point():
+        raise ValueError(f"quaternions must be a floating point tensor, got {q.dtype}")
     norm = torch.linalg.vector_norm(q, dim=-1, keepdim=True)
     if (norm < 1e-8).any() or not torch.isfinite(norm).all():
         raise ValueError("quaternions must be finite and non-zero")

@@ -55,6 +55,8 @@ def n_s2_coeffs(lmax: int) -> int:
 
 def lmax_from_n_so3_coeffs(n: int) -> int:
     """Inverse of :func:`n_so3_coeffs`; ``ValueError`` if ``n`` is not such a number."""
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ValueError(f"the number of SO(3) coefficients must be a positive integer, got {n!r}")
     lmax = 0
     while n_so3_coeffs(lmax) < n:
         lmax += 1

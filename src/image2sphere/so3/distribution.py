@@ -25,7 +25,7 @@ from image2sphere.so3.grid import (
 )
 from image2sphere.so3.grid_eval import get_grid_evaluator
 from image2sphere.so3.rotations import check_rotation_matrix, matrix_to_angles, rotvec_to_matrix
-from image2sphere.so3.wigner import check_lmax, flat_wigner, n_so3_coeffs, wigner_D
+from image2sphere.so3.wigner import check_lmax, default_dtype, flat_wigner, n_so3_coeffs, wigner_D
 
 __all__ = ["LOG_UNIFORM_DENSITY", "SO3Distribution"]
 
@@ -136,7 +136,8 @@ class SO3Distribution:
                 d, s = 2 * l + 1, l * l
                 D0[:, s : s + d, s : s + d] = wigner_D(l, *angles)
                 C[:, s : s + d, s : s + d] = coeffs[:, offset : offset + d * d].reshape(-1, d, d) * math.sqrt(d)
-                X[:, s : s + d, s : s + d] = o3.so3_generators(l).to(coeffs)
+                with default_dtype(torch.float64):  # e3nn builds generators in the default dtype
+                    X[:, s : s + d, s : s + d] = o3.so3_generators(l).to(coeffs)
                 offset += d * d
         w = torch.zeros(R0.shape[0], 3, dtype=coeffs.dtype, device=coeffs.device, requires_grad=True)
         optimizer = torch.optim.Adam([w], lr=lr)

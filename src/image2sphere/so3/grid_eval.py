@@ -78,7 +78,7 @@ class HealpixGridEvaluator:
         self.level = check_level(level)
         self.n_pix, self.n_gamma = so3_grid_size(level)
         self.n_points = self.n_pix * self.n_gamma
-        self.dtype, self.device = dtype, torch.device(device)
+        self.dtype, self.device = dtype, _normalize_device(device)
         nbytes = _operator_numel(lmax, self.n_pix) * torch.finfo(dtype).bits // 8
         if nbytes > max_operator_bytes:
             raise ValueError(
@@ -265,10 +265,16 @@ def get_grid_evaluator(
     lmax: int, level: int, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu"
 ) -> HealpixGridEvaluator:
     """The evaluator for ``(lmax, level)`` on ``device`` in ``dtype``, built once per process."""
+    device = _normalize_device(device)
+    return _cached(check_lmax(lmax), check_level(level), dtype, str(device))
+
+
+def _normalize_device(device: torch.device | str) -> torch.device:
+    """``"cuda"`` -> ``"cuda:<current>"``, so that it compares equal to the device of CUDA tensors."""
     device = torch.device(device)
     if device.type == "cuda" and device.index is None:
         device = torch.device("cuda", torch.cuda.current_device())
-    return _cached(check_lmax(lmax), check_level(level), dtype, str(device))
+    return device
 
 
 def dense_grid_logits(coeffs: torch.Tensor, lmax: int, level: int, block_points: int = 2**16) -> torch.Tensor:

@@ -52,6 +52,7 @@ __all__ = [
 
 MAX_OPERATOR_BYTES = 4 * 2**30  # refuse to build operators larger than this
 MAX_OUTPUT_BYTES = 4 * 2**30  # refuse to materialise full-grid outputs larger than this
+_BUILD_PIXELS = 4096  # pixels per e3nn wigner_D call while building an operator
 _CHUNK_ELEMENTS = 2**19  # values of one streamed [batch, pixels, gammas] block (2 MiB float32: cache-sized)
 
 
@@ -88,25 +89,33 @@ class HealpixGridEvaluator:
         alpha, beta = s2_healpix_grid(level, dtype=torch.float64)  # [P]
         l_of, m_of, n_of = so3_layout(lmax)
         freq = (n_of - l_of).abs()  # [n_coeffs]
-        sign = torch.sign(n_of - l_of).to(torch.float64)
-        # weights of every coefficient for its cos and sin term on every pixel  [n_coeffs, P]
-        w_cos = torch.empty(len(l_of), self.n_pix, dtype=torch.float64)
-        w_sin = torch.empty_like(w_cos)
+        # I_t: the coefficients of frequency t, in flat order; W_t: their (cos, sin) weights on every
+        # pixel, [n_t, P, 1 or 2], written band by band in the target dtype (no full float64 copy).
+        self._index = [torch.nonzero(freq == t).squeeze(1) for t in range(lmax + 1)]
+        self._weights = [
+            torch.empty(len(idx), self.n_pix, 1 if t == 0 else 2, dtype=dtype) for t, idx in enumerate(self._index)
+        ]
+        filled = [0] * (lmax + 1)  # rows of W_t written so far
         offset = 0
         for l in range(lmax + 1):
-            A = math.sqrt(2 * l + 1) * wigner_D(l, alpha, beta, torch.zeros_like(alpha))  # [P, 2l+1, 2l+1]
             size = (2 * l + 1) ** 2
-            m, n = m_of[offset : offset + size], n_of[offset : offset + size]
-            w_cos[offset : offset + size] = A[:, m, n].T
-            w_sin[offset : offset + size] = sign[offset : offset + size, None] * A[:, m, 2 * l - n].T
+            m, n, f = m_of[offset : offset + size], n_of[offset : offset + size], freq[offset : offset + size]
+            for p0 in range(0, self.n_pix, _BUILD_PIXELS):  # blocks bound e3nn's matrix_exp temporaries
+                px = slice(p0, p0 + _BUILD_PIXELS)
+                A = math.sqrt(2 * l + 1) * wigner_D(l, alpha[px], beta[px], torch.zeros_like(alpha[px]))  # [p, d, d]
+                row = list(filled)
+                for t in range(l + 1):
+                    sel = f == t  # this band's coefficients of frequency t, in flat order
+                    rows = slice(row[t], row[t] + int(sel.sum()))
+                    self._weights[t][rows, px, 0] = A[:, m[sel], n[sel]].T
+                    if t > 0:
+                        sign = torch.sign(n[sel] - l).to(A.dtype)[:, None]
+                        self._weights[t][rows, px, 1] = sign * A[:, m[sel], 2 * l - n[sel]].T
+                    row[t] = rows.stop
+            filled = row
             offset += size
-        self._index: list[torch.Tensor] = []  # I_t  [n_t]
-        self._weights: list[torch.Tensor] = []  # W_t  [n_t, P, 1 or 2] (cos, sin)
-        for t in range(lmax + 1):
-            idx = torch.nonzero(freq == t).squeeze(1)
-            W = w_cos[idx, :, None] if t == 0 else torch.stack([w_cos[idx], w_sin[idx]], dim=-1)
-            self._index.append(idx.to(self.device))
-            self._weights.append(W.to(device=self.device, dtype=dtype).contiguous())
+        self._index = [idx.to(self.device) for idx in self._index]
+        self._weights = [W.to(self.device) for W in self._weights]
         gamma = torch.arange(self.n_gamma, dtype=torch.float64) * (2 * math.pi / self.n_gamma)
         rows = [torch.ones_like(gamma)]
         for t in range(1, lmax + 1):

@@ -22,7 +22,9 @@ Stage 2: one matmul with the ``(2 lmax + 1, n_gamma)`` trigonometric basis gives
 
 The operator holds ``(2 n_coeffs - (lmax+1)^2) * n_pixels`` numbers: 861 per pixel for lmax 6,
 i.e. ``861 / (455 * n_gamma)`` of the dense matrix (1/101 at level 5). Reductions that need one
-number per image stream over pixel chunks, so their memory does not grow with the grid.
+number per image stream stage 2 over pixel chunks: besides the operator they hold only the
+per-pixel coefficients, ``(2 lmax + 1) / n_gamma`` of the full output (164 MB for a batch of 64
+at level 6, whose full output would be 4.8 GB).
 """
 
 from __future__ import annotations

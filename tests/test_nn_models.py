@@ -31,9 +31,11 @@ def test_projector_maps_the_image_centre_to_the_pole():
 def test_projector_image_corners_map_to_nothing():
     proj = _identity_projector()
     fmap = torch.zeros(1, 1, 7, 7)
-    for r, c in [(0, 0), (0, 6), (6, 0), (6, 6)]:
+    corners = [(0, 0), (0, 1), (1, 0), (0, 6), (0, 5), (1, 6), (6, 0), (5, 0), (6, 1), (6, 6), (5, 6), (6, 5)]
+    for r, c in corners:  # cells whose centre lies outside the image's inscribed circle
         fmap[..., r, c] = 1.0
     assert proj.project(fmap).abs().max() == 0
+    assert int((proj.inside == 0).sum()) == len(corners)
     fmap[..., 3, 0] = 1.0  # the middle of an edge lies on the disk: it is read
     assert proj.project(fmap).abs().max() > 0
 

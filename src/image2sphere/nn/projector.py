@@ -6,7 +6,9 @@ S2 points are e3nn YXY angles ``(alpha, beta)``, i.e. ``u = (sin b sin a, cos b,
 The image faces the ``+y`` pole: orthographic projection ``P(u) = (u_x, u_z)`` maps the
 hemisphere ``beta <= pi/2`` onto the unit disk, whose horizontal image axis is ``x`` and vertical
 image axis (rows, downwards) is ``z``. The feature map's pixel centres are placed on
-``[-1, 1]^2``; the disk's rim lies at radius ``1 / coverage`` of the outermost grid point.
+``[-1, 1]^2``, so the image itself spans half a cell more on each side; the outermost grid point
+lands at radius ``coverage``. Feature cells whose centre lies outside the image's inscribed circle
+(the corners) are never read.
 """
 
 from __future__ import annotations
@@ -34,8 +36,8 @@ class SpatialS2Projector(nn.Module):
     """Orthographic projection of a feature map onto a HEALPix hemisphere, then the S2 Fourier transform.
 
     Each grid point ``u_i`` reads the (1x1-convolved) feature map at ``P(u_i)`` by Gaussian weights
-    over the pixel centres inside the unit disk (pixels outside it have no preimage on the
-    sphere and are never read), normalised to sum to one, and scaled by a taper that falls
+    over the feature cells whose centres lie inside the image's inscribed circle (the corner cells
+    are never read), normalised to sum to one, and scaled by a taper that falls
     linearly from 1 at ``taper_beta`` to 0 at ``max_beta``. In training a random subset of
     ``n_subset`` grid points is used per forward pass (all of them in eval mode); the Fourier
     coefficients are the discrete projection ``sum_i f(u_i) Y(u_i) / sqrt(n)`` over the points used.
@@ -80,7 +82,9 @@ class SpatialS2Projector(nn.Module):
         rows = torch.linspace(-1, 1, h, dtype=torch.float64) if h > 1 else torch.zeros(1, dtype=torch.float64)
         cols = torch.linspace(-1, 1, w, dtype=torch.float64) if w > 1 else torch.zeros(1, dtype=torch.float64)
         py, px = torch.meshgrid(rows, cols, indexing="ij")  # [H, W]
-        inside = (px**2 + py**2 <= 1 + 1e-9).to(torch.float64)  # [H, W]
+        # the image reaches half a cell beyond the outermost centres: its inscribed ellipse has these semi-axes
+        rx, ry = 1 + 1 / max(w - 1, 1), 1 + 1 / max(h - 1, 1)
+        inside = ((px / rx) ** 2 + (py / ry) ** 2 <= 1 + 1e-9).to(torch.float64)  # [H, W]
         d2 = (px[..., None] - planar[:, 0]) ** 2 + (py[..., None] - planar[:, 1]) ** 2  # [H, W, K]
         weight = torch.exp(-d2 / (2 * sigma**2)) * inside[..., None]
         weight = weight / weight.sum(dim=(0, 1), keepdim=True).clamp_min(1e-300)

@@ -274,3 +274,17 @@ def test_rotate_s2_coeffs():
 def test_lmax_from_n_so3_coeffs_rejects_non_integers(bad):
     with pytest.raises(ValueError, match="positive integer"):
         lmax_from_n_so3_coeffs(bad)
+
+
+@pytest.mark.parametrize("lmax", [0, 1, 6])
+def test_so3_blocks_tile_the_flat_layout(lmax):
+    from image2sphere.so3 import so3_blocks
+
+    l_of, _, _ = so3_layout(lmax)
+    blocks = so3_blocks(lmax)
+    assert [l for l, _ in blocks] == list(range(lmax + 1))
+    assert blocks[0][1].start == 0 and blocks[-1][1].stop == n_so3_coeffs(lmax)
+    for (_, block), (_, nxt) in zip(blocks[:-1], blocks[1:], strict=True):
+        assert block.stop == nxt.start
+    for l, block in blocks:
+        assert (l_of[block] == l).all() and block.stop - block.start == (2 * l + 1) ** 2

@@ -23,7 +23,7 @@ from e3nn import o3
 from torch import nn
 
 from image2sphere.so3.grid import s2_healpix_grid
-from image2sphere.so3.wigner import check_lmax, n_s2_coeffs, n_so3_coeffs, so3_layout
+from image2sphere.so3.wigner import check_lmax, n_s2_coeffs, so3_layout
 
 __all__ = ["S2Conv"]
 
@@ -77,6 +77,4 @@ class S2Conv(nn.Module):
             raise ValueError(f"S2 input must have shape (batch, {self.in_channels}, {n}), got {tuple(x.shape)}")
         xs = x[..., self.index_x]  # [B, f_in, n_so3]
         ps = self.filter()[..., self.index_psi]  # [f_in, f_out, n_so3]
-        out = torch.einsum("bfi,fgi->bgi", xs, ps) / math.sqrt(self.in_channels)  # [B, f_out, n_so3]
-        assert out.shape[-1] == n_so3_coeffs(self.lmax)
-        return out
+        return torch.einsum("bfi,fgi->bgi", xs, ps) / math.sqrt(self.in_channels)  # [B, f_out, n_so3]

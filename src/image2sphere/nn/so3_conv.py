@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from image2sphere.so3.grid import so3_near_identity_grid
-from image2sphere.so3.wigner import check_lmax, flat_wigner, n_so3_coeffs
+from image2sphere.so3.wigner import check_lmax, flat_wigner, n_so3_coeffs, so3_blocks
 
 __all__ = ["SO3Conv"]
 
@@ -53,7 +53,6 @@ class SO3Conv(nn.Module):
         D = flat_wigner(lmax, kernel.to(torch.float64))  # [K, n_so3]
         self.register_buffer("kernel_D", D.float() / math.sqrt(len(kernel)), persistent=False)
         self.weight = nn.Parameter(torch.randn(in_channels, out_channels, len(kernel)))
-        self._blocks = [(l * (4 * l * l - 1) // 3, 2 * l + 1) for l in range(lmax + 1)]  # (offset, size)
 
     def filter(self) -> torch.Tensor:
         """The filter's SO(3) coefficients ``[f_in, f_out, n_so3_coeffs]`` (flat Wigner layout)."""
@@ -66,9 +65,10 @@ class SO3Conv(nn.Module):
         psi = self.filter()
         scale = 1 / math.sqrt(self.in_channels)
         out = []
-        for offset, d in self._blocks:
-            F = x[..., offset : offset + d * d].unflatten(-1, (d, d))  # [B, f_in, d, d]
-            P = psi[..., offset : offset + d * d].unflatten(-1, (d, d))  # [f_in, f_out, d, d]
+        for l, block in so3_blocks(self.lmax):
+            d = 2 * l + 1
+            F = x[..., block].unflatten(-1, (d, d))  # [B, f_in, d, d]
+            P = psi[..., block].unflatten(-1, (d, d))  # [f_in, f_out, d, d]
             block = torch.einsum("bfmk,fgnk->bgmn", F, P) * (scale / math.sqrt(d))  # [B, f_out, d, d]
             out.append(block.flatten(-2))
         return torch.cat(out, dim=-1)

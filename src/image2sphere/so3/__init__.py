@@ -8,6 +8,7 @@ and a pixel-major flat order (``p * n_gamma + k``) for the SO(3) HEALPix grid.
 from image2sphere.so3.distribution import LOG_UNIFORM_DENSITY, SO3Distribution
 from image2sphere.so3.grid import (
     MAX_LEVEL,
+    check_grid_index,
     check_level,
     gamma_major_to_pixel_major,
     s2_healpix_grid,
@@ -40,6 +41,7 @@ from image2sphere.so3.wigner import (
     n_s2_coeffs,
     n_so3_coeffs,
     rotate_s2_coeffs,
+    so3_blocks,
     so3_layout,
     wigner_D,
 )
@@ -50,6 +52,7 @@ __all__ = [
     "HealpixGridEvaluator",
     "SO3Distribution",
     "angles_to_matrix",
+    "check_grid_index",
     "check_level",
     "check_lmax",
     "check_rotation_matrix",
@@ -71,6 +74,7 @@ __all__ = [
     "rotate_s2_coeffs",
     "rotvec_to_matrix",
     "s2_healpix_grid",
+    "so3_blocks",
     "so3_grid_size",
     "so3_healpix_grid",
     "so3_healpix_grid_angles",

@@ -25,7 +25,7 @@ from image2sphere.so3.grid import (
 )
 from image2sphere.so3.grid_eval import get_grid_evaluator
 from image2sphere.so3.rotations import check_rotation_matrix, matrix_to_angles, rotvec_to_matrix
-from image2sphere.so3.wigner import check_lmax, default_dtype, flat_wigner, n_so3_coeffs, wigner_D
+from image2sphere.so3.wigner import check_lmax, default_dtype, flat_wigner, n_so3_coeffs, so3_blocks, wigner_D
 
 __all__ = ["LOG_UNIFORM_DENSITY", "SO3Distribution"]
 
@@ -131,14 +131,12 @@ class SO3Distribution:
             D0 = coeffs.new_zeros(len(R0), n, n)  # D^l(R0) on the diagonal blocks
             C = torch.zeros_like(D0)  # sqrt(2l+1) c^l on the diagonal blocks
             X = coeffs.new_zeros(3, n, n)  # generators of every band
-            offset = 0
-            for l in range(self.lmax + 1):
+            for l, block in so3_blocks(self.lmax):
                 d, s = 2 * l + 1, l * l
                 D0[:, s : s + d, s : s + d] = wigner_D(l, *angles)
-                C[:, s : s + d, s : s + d] = coeffs[:, offset : offset + d * d].reshape(-1, d, d) * math.sqrt(d)
+                C[:, s : s + d, s : s + d] = coeffs[:, block].reshape(-1, d, d) * math.sqrt(d)
                 with default_dtype(torch.float64):  # e3nn builds generators in the default dtype
                     X[:, s : s + d, s : s + d] = o3.so3_generators(l).to(coeffs)
-                offset += d * d
         w = torch.zeros(R0.shape[0], 3, dtype=coeffs.dtype, device=coeffs.device, requires_grad=True)
         optimizer = torch.optim.Adam([w], lr=lr)
         schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda k: 1 - k / steps)

@@ -27,6 +27,7 @@ from image2sphere.so3.rotations import angles_to_matrix, check_rotation_matrix, 
 
 __all__ = [
     "MAX_LEVEL",
+    "check_grid_index",
     "check_level",
     "gamma_major_to_pixel_major",
     "s2_healpix_grid",
@@ -90,12 +91,19 @@ def so3_healpix_grid(level: int, dtype: torch.dtype = torch.float32) -> torch.Te
     return angles_to_matrix(alpha, beta, gamma).to(dtype)
 
 
+def check_grid_index(index, level: int) -> torch.Tensor:
+    """``index`` as a tensor, or ``ValueError`` unless all are integers in ``[0, 72 * 8**level)``."""
+    n_points = math.prod(so3_grid_size(level))
+    index = torch.as_tensor(index)
+    if index.is_floating_point() or index.dtype == torch.bool or ((index < 0) | (index >= n_points)).any():
+        raise ValueError(f"grid indices must be integers in [0, {n_points}) for level {level}")
+    return index
+
+
 def gamma_major_to_pixel_major(index: torch.Tensor, level: int) -> torch.Tensor:
     """Convert grid indices of the original code's order (``k * npix + p``) to ours (``p * ngamma + k``)."""
     n_pix, n_gamma = so3_grid_size(level)
-    index = torch.as_tensor(index)
-    if index.is_floating_point() or index.dtype == torch.bool or ((index < 0) | (index >= n_pix * n_gamma)).any():
-        raise ValueError(f"grid indices must be integers in [0, {n_pix * n_gamma}) for level {level}")
+    index = check_grid_index(index, level)
     k, p = index // n_pix, index % n_pix
     return p * n_gamma + k
 
@@ -129,9 +137,7 @@ def so3_near_identity_grid(
 def so3_healpix_index_to_angles(index: torch.Tensor, level: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """YXY angles of grid points given by flat (pixel-major) indices of any shape."""
     n_pix, n_gamma = so3_grid_size(level)
-    index = torch.as_tensor(index)
-    if index.is_floating_point() or ((index < 0) | (index >= n_pix * n_gamma)).any():
-        raise ValueError(f"grid indices must be integers in [0, {n_pix * n_gamma}) for level {level}")
+    index = check_grid_index(index, level)
     pix = (index // n_gamma).cpu().numpy()
     beta, alpha = healpy.pix2ang(2**level, pix.reshape(-1), nest=False)
     alpha = torch.as_tensor(alpha, dtype=torch.float64).reshape(index.shape)

@@ -40,6 +40,7 @@ from image2sphere.so3.wigner import (
     flat_wigner_from_angles,
     n_s2_coeffs,
     n_so3_coeffs,
+    so3_blocks,
     so3_layout,
     wigner_D,
 )
@@ -98,10 +99,8 @@ class HealpixGridEvaluator:
             torch.empty(len(idx), self.n_pix, 1 if t == 0 else 2, dtype=dtype) for t, idx in enumerate(self._index)
         ]
         filled = [0] * (lmax + 1)  # rows of W_t written so far
-        offset = 0
-        for l in range(lmax + 1):
-            size = (2 * l + 1) ** 2
-            m, n, f = m_of[offset : offset + size], n_of[offset : offset + size], freq[offset : offset + size]
+        for l, block in so3_blocks(lmax):
+            m, n, f = m_of[block], n_of[block], freq[block]
             for p0 in range(0, self.n_pix, _BUILD_PIXELS):  # blocks bound e3nn's matrix_exp temporaries
                 px = slice(p0, p0 + _BUILD_PIXELS)
                 A = math.sqrt(2 * l + 1) * wigner_D(l, alpha[px], beta[px], torch.zeros_like(alpha[px]))  # [p, d, d]
@@ -115,7 +114,6 @@ class HealpixGridEvaluator:
                         self._weights[t][rows, px, 1] = sign * A[:, m[sel], 2 * l - n[sel]].T
                     row[t] = rows.stop
             filled = row
-            offset += size
         self._index = [idx.to(self.device) for idx in self._index]
         self._weights = [W.to(self.device) for W in self._weights]
         gamma = torch.arange(self.n_gamma, dtype=torch.float64) * (2 * math.pi / self.n_gamma)

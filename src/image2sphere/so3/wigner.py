@@ -30,6 +30,7 @@ __all__ = [
     "n_s2_coeffs",
     "n_so3_coeffs",
     "rotate_s2_coeffs",
+    "so3_blocks",
     "so3_layout",
     "wigner_D",
 ]
@@ -63,6 +64,15 @@ def lmax_from_n_so3_coeffs(n: int) -> int:
     if n_so3_coeffs(lmax) != n:
         raise ValueError(f"{n} is not a valid number of SO(3) coefficients (455 for lmax 6, 165 for lmax 4)")
     return lmax
+
+
+def so3_blocks(lmax: int) -> list[tuple[int, slice]]:
+    """``(l, slice)`` of every band's ``(2l+1)^2`` entries in the flat Wigner layout."""
+    blocks, offset = [], 0
+    for l in range(check_lmax(lmax) + 1):
+        blocks.append((l, slice(offset, offset + (2 * l + 1) ** 2)))
+        offset += (2 * l + 1) ** 2
+    return blocks
 
 
 @lru_cache(maxsize=32)
@@ -145,11 +155,9 @@ def left_translate_so3_coeffs(c: torch.Tensor, rotation: torch.Tensor, lmax: int
     """Coefficients ``(..., n_so3_coeffs)`` of the left-translated signal ``f(R^-1 g)``: ``c^l -> D^l(R) c^l``."""
     if c.shape[-1] != n_so3_coeffs(lmax):
         raise ValueError(f"SO(3) coefficients must end in {n_so3_coeffs(lmax)} for lmax={lmax}, got {tuple(c.shape)}")
-    blocks = _wigner_blocks(lmax, rotation.to(c.dtype))
-    out, offset = [], 0
-    for l, D in enumerate(blocks):
-        d = 2 * l + 1
-        C = c[..., offset : offset + d * d].unflatten(-1, (d, d))  # [..., d, d]
+    Ds = _wigner_blocks(lmax, rotation.to(c.dtype))
+    out = []
+    for (l, block), D in zip(so3_blocks(lmax), Ds, strict=True):
+        C = c[..., block].unflatten(-1, (2 * l + 1, 2 * l + 1))  # [..., d, d]
         out.append((D @ C).flatten(-2))
-        offset += d * d
     return torch.cat(out, dim=-1)

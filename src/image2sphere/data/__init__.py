@@ -1,0 +1,43 @@
+"""Datasets: the SYMSOL renderer, dataset readers and LightningDataModules.
+
+The renderer lives in :mod:`image2sphere.data.render` (``render``, ``render_symsol``, and the
+command ``python -m image2sphere.data.render``); it is imported on first use so that running it as
+a module does not find it already imported.
+"""
+
+from image2sphere.data.common import EpochShuffleSampler, load_image, normalize_images
+from image2sphere.data.shapes import (
+    SHAPES,
+    SYMSOL_I_SHAPES,
+    SYMSOL_II_SHAPES,
+    equivalent_rotation_sets,
+    equivalent_rotations,
+    mark_visible,
+    symmetry_group,
+)
+from image2sphere.data.symsol import SymsolDataModule, SymsolDataset, load_symsol_rotations
+
+__all__ = [
+    "SHAPES",
+    "SYMSOL_II_SHAPES",
+    "SYMSOL_I_SHAPES",
+    "EpochShuffleSampler",
+    "SymsolDataModule",
+    "SymsolDataset",
+    "equivalent_rotation_sets",
+    "equivalent_rotations",
+    "load_image",
+    "load_symsol_rotations",
+    "mark_visible",
+    "normalize_images",
+    "render_symsol",
+    "symmetry_group",
+]
+
+
+def __getattr__(name: str):
+    if name == "render_symsol":
+        from image2sphere.data.render import render_symsol
+
+        return render_symsol
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

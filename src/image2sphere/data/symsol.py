@@ -1,0 +1,373 @@
+"""SYMSOL in its published layout (SPEC section 4), rendered by this project or downloaded.
+
+Layout
+------
+``{root}/{train,test}/images/{shape}_{i:05d}.png`` and ``{root}/{split}/rotations.npz`` with one
+key per shape, each ``(N, M, 3, 3)``: the rotations equivalent under the shape's symmetry for every
+image, ``[:, 0]`` the rendering rotation. Where ``M`` varies between images (marked shapes of
+SYMSOL II) the array is either an object array of ``(M_i, 3, 3)`` arrays or padded to the largest
+``M``; padding entries are matrices that are all NaN (what :mod:`image2sphere.data.render` writes)
+or all zero. Both are accepted; :func:`load_symsol_rotations` reports which one it found.
+
+Items
+-----
+Each item is a dict: ``image`` float32 ``(3, S, S)`` (ImageNet-normalised), ``class_index`` (the
+shape's position in ``shapes``), ``index`` (row in the npz), and either ``rotation (3, 3)`` (one
+training label: a random equivalent, or the rendering rotation, see ``label``) or, for evaluation,
+``rotations (M_max, 3, 3)`` with ``mask (M_max,)`` over the full equivalent set (padding repeats
+the rendering rotation and is masked out).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+import lightning.pytorch as pl
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from image2sphere.data.common import EpochShuffleSampler, load_image, normalize_images, stable_seed
+from image2sphere.data.shapes import SHAPES, SYMSOL_I_SHAPES
+
+__all__ = [
+    "LABEL_MODES",
+    "SymsolDataModule",
+    "SymsolDataset",
+    "load_symsol_rotations",
+]
+
+log = logging.getLogger(__name__)
+
+LABEL_MODES = ("random", "first")
+ORTHONORMAL_ATOL = 1e-3
+
+
+def check_shapes(shapes: Sequence[str], key: str = "shapes") -> tuple[str, ...]:
+    if isinstance(shapes, str):
+        shapes = [shapes]
+    shapes = tuple(shapes)
+    unknown = [s for s in shapes if s not in SHAPES]
+    if not shapes or unknown or len(set(shapes)) != len(shapes):
+        raise ValueError(f"{key} must be distinct names from {list(SHAPES)}, got {list(shapes)}")
+    return shapes
+
+
+def _padding_rows(a: np.ndarray) -> np.ndarray:
+    """``(N, M)`` True where a matrix of ``(N, M, 3, 3)`` is padding (all NaN or all zero)."""
+    flat = a.reshape(*a.shape[:2], 9)
+    return np.isnan(flat).all(-1) | (flat == 0).all(-1)
+
+
+def load_symsol_rotations(split_dir: str | Path, shapes: Sequence[str]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Read ``{split_dir}/rotations.npz``: per shape ``(rotations (N, M, 3, 3) float32, counts (N,))``.
+
+    Rows are compacted so that the first ``counts[i]`` entries of row ``i`` are real; the rest is
+    padding filled with the row's first rotation. Raises a ``ValueError`` naming the file and key
+    when a shape is missing, an array has the wrong shape, or a rendering rotation is not a rotation.
+    """
+    path = Path(split_dir) / "rotations.npz"
+    if not path.is_file():
+        raise FileNotFoundError(f"SYMSOL rotations not found: {path} (expected the layout of SPEC section 4)")
+    try:
+        archive = np.load(path, allow_pickle=False)
+        arrays = {k: archive[k] for k in archive.files if k in shapes}
+    except ValueError:
+        # Object arrays (one (M_i, 3, 3) array per image) need pickle; this file is a dataset the
+        # user chose to read, so allow it, and say so.
+        log.info("%s holds object arrays (variable M per image); loading with allow_pickle=True", path)
+        archive = np.load(path, allow_pickle=True)
+        arrays = {k: archive[k] for k in archive.files if k in shapes}
+    out = {}
+    for shape in shapes:
+        if shape not in arrays:
+            raise ValueError(f"{path} has no key {shape!r} (keys: {sorted(archive.files)})")
+        a = arrays[shape]
+        if a.dtype == object:
+            rows = [np.asarray(r, dtype=np.float32).reshape(-1, 3, 3) for r in a]
+            counts = np.array([len(r) for r in rows])
+            dense = np.zeros((len(rows), max(counts, default=1), 3, 3), np.float32)
+            for i, r in enumerate(rows):
+                dense[i, : len(r)] = r
+            kind = "object array"
+        else:
+            if a.ndim != 4 or a.shape[-2:] != (3, 3):
+                raise ValueError(f"{path}[{shape!r}] must have shape (N, M, 3, 3), got {a.shape}")
+            dense = a.astype(np.float32, copy=True)
+            real = ~_padding_rows(dense)
+            counts = real.sum(1)
+            if not real.all():
+                kind = "padded"
+                order = np.argsort(~real, axis=1, kind="stable")  # real entries first, in order
+                dense = np.take_along_axis(dense, order[..., None, None], axis=1)
+            else:
+                kind = "dense"
+        if len(dense) == 0:
+            raise ValueError(f"{path}[{shape!r}] holds no images")
+        if (counts < 1).any():
+            raise ValueError(f"{path}[{shape!r}]: rows {np.flatnonzero(counts < 1)[:5].tolist()} have no rotation")
+        R0 = dense[:, 0].astype(np.float64)
+        err = np.abs(R0 @ np.swapaxes(R0, -1, -2) - np.eye(3)).max(axis=(-1, -2))
+        bad = np.flatnonzero((err > ORTHONORMAL_ATOL) | (np.abs(np.linalg.det(R0) - 1) > ORTHONORMAL_ATOL))
+        if len(bad):
+            raise ValueError(
+                f"{path}[{shape!r}]: rows {bad[:5].tolist()} are not rotation matrices (R R^T != I or det != 1)"
+            )
+        m = np.arange(dense.shape[1])
+        dense = np.where((m[None, :] < counts[:, None])[..., None, None], dense, dense[:, :1])
+        log.info("%s[%s]: %d images, M %d..%d (%s)", path, shape, len(dense), counts.min(), counts.max(), kind)
+        out[shape] = (dense, counts)
+    return out
+
+
+class SymsolDataset(Dataset):
+    """Images and rotations of some SYMSOL shapes in one split.
+
+    Args:
+        root: the dataset root (holding ``train/`` and ``test/``).
+        split: ``"train"`` or ``"test"``.
+        shapes: shape names; ``class_index`` is the position in this list.
+        rows: per shape, the npz rows to use (default: all).
+        label: ``"random"`` (a uniformly chosen equivalent rotation, redrawn every epoch; I2S) or
+            ``"first"`` (the rendering rotation; IPDF). Only used when ``return_all`` is False.
+        return_all: return the full equivalent set with a mask (evaluation) instead of one label.
+        image_size: images are resized to this square size when they differ.
+        cache_images: decode every image once, up front, and keep them in memory (uint8).
+        seed: seed of the label choice.
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        split: str,
+        shapes: Sequence[str],
+        rows: dict[str, np.ndarray] | None = None,
+        label: str = "random",
+        return_all: bool = False,
+        image_size: int = 224,
+        cache_images: bool = False,
+        seed: int = 0,
+        rotations: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
+    ):
+        if label not in LABEL_MODES:
+            raise ValueError(f"label must be one of {LABEL_MODES}, got {label!r}")
+        self.root = Path(root)
+        self.split = split
+        self.shapes = check_shapes(shapes)
+        self.label = label
+        self.return_all = return_all
+        self.image_size = int(image_size)
+        self.seed = int(seed)
+        self.epoch = 0
+        split_dir = self.root / split
+        rotations = rotations if rotations is not None else load_symsol_rotations(split_dir, self.shapes)
+        self.items: list[tuple[int, int]] = []  # (class_index, row)
+        self.rotations: list[torch.Tensor] = []
+        self.counts: list[torch.Tensor] = []
+        for c, shape in enumerate(self.shapes):
+            dense, counts = rotations[shape]
+            use = np.arange(len(dense)) if rows is None else np.asarray(rows[shape])
+            if len(use) and (use.min() < 0 or use.max() >= len(dense)):
+                raise ValueError(f"rows for {shape!r} must lie in [0, {len(dense)})")
+            self.items += [(c, int(r)) for r in use]
+            self.rotations.append(torch.from_numpy(dense))
+            self.counts.append(torch.from_numpy(counts))
+        self.max_m = max(int(counts.max()) for counts in self.counts)
+        self._cache: torch.Tensor | None = None
+        missing = [p for p in (self.image_path(i) for i in range(len(self.items))) if not p.is_file()]
+        if missing:
+            raise FileNotFoundError(
+                f"{len(missing)} image(s) listed in {split_dir / 'rotations.npz'} are missing, e.g. {missing[0]}"
+            )
+        if cache_images:
+            self._cache = torch.stack([self._read(i) for i in range(len(self.items))])
+
+    def image_path(self, i: int) -> Path:
+        c, row = self.items[i]
+        return self.root / self.split / "images" / f"{self.shapes[c]}_{row:05d}.png"
+
+    def _read(self, i: int) -> torch.Tensor:
+        return load_image(self.image_path(i), self.image_size)
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        c, row = self.items[i]
+        image = self._cache[i] if self._cache is not None else self._read(i)
+        item = {
+            "image": normalize_images(image),
+            "class_index": torch.tensor(c),
+            "index": torch.tensor(row),
+        }
+        rotations, count = self.rotations[c][row], int(self.counts[c][row])
+        if self.return_all:
+            padded = rotations[:1].expand(self.max_m, 3, 3).clone()
+            padded[:count] = rotations[:count]
+            item["rotations"] = padded
+            item["mask"] = torch.arange(self.max_m) < count
+        else:
+            j = 0
+            if self.label == "random" and count > 1:
+                g = torch.Generator().manual_seed(stable_seed("label", self.seed, self.epoch, c, row))
+                j = int(torch.randint(count, (1,), generator=g))
+            item["rotation"] = rotations[j].clone()
+        return item
+
+
+class SymsolDataModule(pl.LightningDataModule):
+    """SYMSOL train / validation / test loaders.
+
+    Args:
+        root: the dataset root. ``None`` with ``render`` set: a cache directory under
+            ``render_dir`` named after the render parameters.
+        shapes: which shapes (SYMSOL I: tet cube icosa cone cyl; SYMSOL II: one of tetX cylO sphereX).
+        train_per_shape: use only the first this many training images of each shape (``None``: all),
+            e.g. 10000 for the paper's low-data SYMSOL experiment. The validation images are
+            carved from these.
+        val_per_shape: training images per shape held out (chosen with ``seed``) for validation.
+        test_per_shape: use only the first this many test images of each shape.
+        label: one training label per image, ``"random"`` equivalent or ``"first"``.
+        image_size: network input size; images are resized when the files differ.
+        batch_size, num_workers, pin_memory: loader settings (evaluation uses the same batch size).
+        cache_images: decode all images once into memory (fast for small sets).
+        seed: seed of the validation split, the shuffling and the label choice.
+        render: if set, a dict of :func:`image2sphere.data.render.render_symsol` arguments
+            (``train``, ``test`` image counts per shape, ``image_size``, ``seed``, ...): the set is
+            rendered once into ``root`` by :meth:`prepare_data` and reused afterwards.
+        render_dir: where rendered sets are cached when ``root`` is ``None``.
+    """
+
+    def __init__(
+        self,
+        root: str | None = None,
+        shapes: Sequence[str] = SYMSOL_I_SHAPES,
+        train_per_shape: int | None = None,
+        val_per_shape: int = 0,
+        test_per_shape: int | None = None,
+        label: str = "random",
+        image_size: int = 224,
+        batch_size: int = 64,
+        num_workers: int = 0,
+        pin_memory: bool = False,
+        cache_images: bool = False,
+        seed: int = 0,
+        render: dict | None = None,
+        render_dir: str | None = None,
+    ):
+        super().__init__()
+        self.shapes = check_shapes(shapes, "dataset.shapes")
+        if label not in LABEL_MODES:
+            raise ValueError(f"dataset.label must be one of {LABEL_MODES}, got {label!r}")
+        for key, value in (("train_per_shape", train_per_shape), ("test_per_shape", test_per_shape)):
+            if value is not None and (not isinstance(value, int) or value < 1):
+                raise ValueError(f"dataset.{key} must be a positive integer or null, got {value!r}")
+        if not isinstance(val_per_shape, int) or val_per_shape < 0:
+            raise ValueError(f"dataset.val_per_shape must be an integer >= 0, got {val_per_shape!r}")
+        if batch_size < 1 or num_workers < 0:
+            raise ValueError(f"dataset.batch_size must be >= 1 and num_workers >= 0, got {batch_size}, {num_workers}")
+        self.render = dict(render) if render is not None else None
+        if root is None:
+            if self.render is None or render_dir is None:
+                raise ValueError(
+                    "dataset.root is not set: point it at a SYMSOL download (the folder holding train/ and "
+                    "test/), e.g. dataset.root=/data/symsol, or set dataset.render to render one"
+                )
+            root = str(Path(render_dir) / self._render_tag())
+        self.root = Path(root)
+        self.train_per_shape = train_per_shape
+        self.val_per_shape = val_per_shape
+        self.test_per_shape = test_per_shape
+        self.label = label
+        self.image_size = int(image_size)
+        self.batch_size = int(batch_size)
+        self.num_workers = int(num_workers)
+        self.pin_memory = bool(pin_memory)
+        self.cache_images = bool(cache_images)
+        self.seed = int(seed)
+        self.class_names = list(self.shapes)
+        self.data_train = self.data_val = self.data_test = None
+
+    def _render_tag(self) -> str:
+        r = self.render
+        shapes = "-".join(r.get("shapes", self.shapes))
+        return f"{shapes}_{r.get('image_size', 224)}px_train{r['train']}_test{r['test']}_seed{r.get('seed', 0)}"
+
+    def prepare_data(self) -> None:
+        if self.render is None:
+            if not (self.root / "train").is_dir() and not (self.root / "test").is_dir():
+                raise FileNotFoundError(
+                    f"no SYMSOL data at {self.root} (expected {self.root}/train and {self.root}/test): "
+                    "download symsol_dataset.zip and unzip it there, or set dataset.root"
+                )
+            return
+        from image2sphere.data.render import render_symsol
+
+        r = dict(self.render)
+        splits = {"train": r.pop("train"), "test": r.pop("test")}
+        r.setdefault("shapes", self.shapes)
+        missing = set(self.shapes) - set(r["shapes"])
+        if missing:
+            raise ValueError(f"dataset.render.shapes lacks {sorted(missing)}, which dataset.shapes uses")
+        render_symsol(self.root, splits=splits, **r)
+
+    def _rows(self, rotations, limit: int | None) -> dict[str, np.ndarray]:
+        return {s: np.arange(min(len(rotations[s][0]), limit or len(rotations[s][0]))) for s in self.shapes}
+
+    def setup(self, stage: str | None = None) -> None:
+        common = dict(root=self.root, shapes=self.shapes, image_size=self.image_size, seed=self.seed)
+        if stage in (None, "fit", "validate") and self.data_train is None:
+            rotations = load_symsol_rotations(self.root / "train", self.shapes)
+            rows = self._rows(rotations, self.train_per_shape)
+            train_rows, val_rows = {}, {}
+            for s, r in rows.items():
+                if self.val_per_shape >= len(r):
+                    raise ValueError(
+                        f"dataset.val_per_shape={self.val_per_shape} leaves no training images of {s!r} "
+                        f"({len(r)} available)"
+                    )
+                g = torch.Generator().manual_seed(stable_seed("val-split", self.seed, s))
+                perm = r[torch.randperm(len(r), generator=g).numpy()]
+                val_rows[s], train_rows[s] = np.sort(perm[: self.val_per_shape]), np.sort(perm[self.val_per_shape :])
+            self.data_train = SymsolDataset(
+                split="train", rows=train_rows, label=self.label, cache_images=self.cache_images,
+                rotations=rotations, **common,
+            )  # fmt: skip
+            if self.val_per_shape:
+                self.data_val = SymsolDataset(
+                    split="train", rows=val_rows, return_all=True, cache_images=self.cache_images,
+                    rotations=rotations, **common,
+                )  # fmt: skip
+        if stage in (None, "test") and self.data_test is None:
+            rotations = load_symsol_rotations(self.root / "test", self.shapes)
+            self.data_test = SymsolDataset(
+                split="test", rows=self._rows(rotations, self.test_per_shape), return_all=True,
+                cache_images=self.cache_images, rotations=rotations, **common,
+            )  # fmt: skip
+
+    def _loader(self, dataset, train: bool) -> DataLoader:
+        sampler = EpochShuffleSampler(len(dataset), self.seed, dataset) if train else None
+        return DataLoader(
+            dataset,
+            batch_size=self.batch_size,
+            sampler=sampler,
+            shuffle=False,
+            drop_last=False,
+            num_workers=self.num_workers,
+            pin_memory=self.pin_memory,
+            persistent_workers=False,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader(self.data_train, train=True)
+
+    def val_dataloader(self) -> DataLoader | list:
+        return self._loader(self.data_val, train=False) if self.data_val is not None else []
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader(self.data_test, train=False)

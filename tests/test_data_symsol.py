@@ -1,0 +1,163 @@
+"""The SYMSOL reader and data module on small sets written in the published layout."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from conftest import haar_rotations
+from image2sphere.data.common import EpochShuffleSampler, normalize_images
+from image2sphere.data.symsol import SymsolDataModule, SymsolDataset, load_symsol_rotations
+
+SIZE = 16
+
+
+def _write_split(root, split: str, sets: dict[str, np.ndarray], seed: int = 0) -> None:
+    """Images (random colours) and rotations.npz for ``sets[shape]`` of shape (N, M, 3, 3) or object."""
+    rng = np.random.default_rng(seed)
+    (root / split / "images").mkdir(parents=True)
+    for shape, rotations in sets.items():
+        for i in range(len(rotations)):
+            pixels = rng.integers(0, 256, (SIZE, SIZE, 3), dtype=np.uint8)
+            Image.fromarray(pixels).save(root / split / "images" / f"{shape}_{i:05d}.png")
+    np.savez(root / split / "rotations.npz", **sets)
+
+
+def _equivalents(n: int, m: int, seed: int) -> np.ndarray:
+    """(n, m, 3, 3): each row R @ S_j for m random S_j (S_0 = identity)."""
+    R = haar_rotations(n, seed=seed)
+    S = haar_rotations(m, seed=seed + 100)
+    S[0] = torch.eye(3, dtype=S.dtype)
+    return (R[:, None] @ S[None]).numpy().astype(np.float32)
+
+
+@pytest.fixture
+def symsol_root(tmp_path):
+    """cube: dense (N, 24); tetX: NaN-padded with M in {1, 3, 6}; train 10 and test 4 per shape."""
+    root = tmp_path / "symsol"
+    for split, n, seed in (("train", 10, 0), ("test", 4, 50)):
+        cube = _equivalents(n, 24, seed)
+        tetx = _equivalents(n, 6, seed + 1)
+        counts = np.resize([1, 3, 6], n)
+        for i, c in enumerate(counts):
+            tetx[i, c:] = np.nan
+        _write_split(root, split, {"cube": cube, "tetX": tetx}, seed)
+    return root
+
+
+def test_loader_compacts_nan_padding_and_reads_object_arrays(symsol_root, tmp_path):
+    rot = load_symsol_rotations(symsol_root / "train", ["cube", "tetX"])
+    cube, cube_counts = rot["cube"]
+    tetx, tetx_counts = rot["tetX"]
+    assert cube.shape == (10, 24, 3, 3) and (cube_counts == 24).all()
+    assert tetx.shape == (10, 6, 3, 3) and tetx_counts.tolist() == np.resize([1, 3, 6], 10).tolist()
+    assert np.isfinite(tetx).all()  # padding replaced by the first rotation
+    # the same rotations as an object array (variable M per image)
+    raw = np.load(symsol_root / "train" / "rotations.npz")["tetX"]
+    obj = np.empty(10, dtype=object)
+    for i, c in enumerate(tetx_counts):
+        obj[i] = raw[i, :c]
+    other = tmp_path / "obj"
+    _write_split(other, "train", {"tetX": obj})
+    dense, counts = load_symsol_rotations(other / "train", ["tetX"])["tetX"]
+    np.testing.assert_array_equal(counts, tetx_counts)
+    for i, c in enumerate(counts):
+        np.testing.assert_array_equal(dense[i, :c], raw[i, :c])
+
+
+def test_loader_errors_name_the_file_and_key(symsol_root, tmp_path):
+    with pytest.raises(ValueError, match=r"rotations.npz has no key 'cone'"):
+        load_symsol_rotations(symsol_root / "train", ["cone"])
+    with pytest.raises(FileNotFoundError, match="rotations.npz"):
+        load_symsol_rotations(tmp_path / "nowhere", ["cube"])
+    bad = _equivalents(3, 2, 0)
+    bad[1, 0] *= 2.0  # not orthonormal
+    _write_split(tmp_path / "bad", "train", {"cube": bad})
+    with pytest.raises(ValueError, match=r"\['cube'\]: rows \[1\] are not rotation matrices"):
+        load_symsol_rotations(tmp_path / "bad" / "train", ["cube"])
+
+
+def test_dataset_items_and_label_in_equivalent_set(symsol_root):
+    ds = SymsolDataset(symsol_root, "train", ["cube", "tetX"], label="random", image_size=SIZE)
+    assert len(ds) == 20
+    item = ds[13]  # tetX row 3: M = 1
+    assert item["image"].shape == (3, SIZE, SIZE) and item["image"].dtype == torch.float32
+    assert item["class_index"].item() == 1 and item["index"].item() == 3
+    raw = np.load(symsol_root / "train" / "rotations.npz")
+    # random labels are members of the set, vary over epochs and are reproducible
+    chosen = []
+    for epoch in range(8):
+        ds.set_epoch(epoch)
+        label = ds[2]["rotation"].numpy()  # cube row 2
+        assert np.abs(raw["cube"][2] - label).reshape(24, -1).max(1).min() == 0
+        chosen.append(label)
+    assert len({a.tobytes() for a in chosen}) > 1
+    ds.set_epoch(3)
+    np.testing.assert_array_equal(ds[2]["rotation"].numpy(), chosen[3])
+    first = SymsolDataset(symsol_root, "train", ["cube"], label="first", image_size=SIZE)
+    np.testing.assert_array_equal(first[2]["rotation"].numpy(), raw["cube"][2, 0])
+    # the image is the file, normalised
+    png = np.array(Image.open(symsol_root / "train" / "images" / "tetX_00003.png"))
+    torch.testing.assert_close(item["image"], normalize_images(torch.from_numpy(png)))
+
+
+def test_eval_items_hold_full_set_with_mask(symsol_root):
+    ds = SymsolDataset(symsol_root, "test", ["tetX", "cube"], return_all=True, image_size=SIZE)
+    raw = np.load(symsol_root / "test" / "rotations.npz")
+    item = ds[1]  # tetX row 1: M = 3
+    assert item["rotations"].shape == (24, 3, 3) and item["mask"].shape == (24,)
+    assert item["mask"].sum() == 3 and item["mask"][:3].all()
+    np.testing.assert_array_equal(item["rotations"][:3].numpy(), raw["tetX"][1, :3])
+    assert torch.isfinite(item["rotations"]).all()
+    assert ds[5]["mask"].all()  # cube: 24 of 24
+
+
+def test_datamodule_split_counts_loaders_and_resize(symsol_root):
+    dm = SymsolDataModule(
+        root=str(symsol_root), shapes=["cube", "tetX"], val_per_shape=3, test_per_shape=2,
+        image_size=8, batch_size=4, cache_images=True, seed=5,
+    )  # fmt: skip
+    dm.prepare_data()
+    dm.setup("fit")
+    dm.setup("test")
+    assert len(dm.data_train) == 14 and len(dm.data_val) == 6 and len(dm.data_test) == 4
+    train_rows = {(c, r) for c, r in dm.data_train.items}
+    val_rows = {(c, r) for c, r in dm.data_val.items}
+    assert not train_rows & val_rows and len(train_rows | val_rows) == 20
+    batch = next(iter(dm.train_dataloader()))
+    assert batch["image"].shape == (4, 3, 8, 8) and batch["rotation"].shape == (4, 3, 3)
+    assert batch["class_index"].dtype == torch.int64
+    test_batches = list(dm.test_dataloader())
+    assert sum(len(b["image"]) for b in test_batches) == 4  # every test image, no dropped batch
+    assert test_batches[0]["rotations"].shape[1:] == (24, 3, 3)
+    assert dm.class_names == ["cube", "tetX"]
+
+
+def test_shuffle_depends_only_on_seed_and_epoch():
+    a, b = EpochShuffleSampler(50, seed=1), EpochShuffleSampler(50, seed=1)
+    a.set_epoch(4)
+    b.set_epoch(4)
+    assert list(a) == list(b) and sorted(a) == list(range(50))
+    b.set_epoch(5)
+    assert list(a) != list(b)
+
+
+def test_datamodule_config_errors(symsol_root, tmp_path):
+    with pytest.raises(ValueError, match="dataset.shapes"):
+        SymsolDataModule(root=str(symsol_root), shapes=["cube", "dodecahedron"])
+    with pytest.raises(ValueError, match="dataset.root is not set"):
+        SymsolDataModule(root=None)
+    with pytest.raises(FileNotFoundError, match="no SYMSOL data at"):
+        SymsolDataModule(root=str(tmp_path / "missing")).prepare_data()
+    dm = SymsolDataModule(root=str(symsol_root), shapes=["cube"], val_per_shape=10)
+    with pytest.raises(ValueError, match="val_per_shape=10 leaves no training images"):
+        dm.setup("fit")
+    (symsol_root / "train" / "images" / "cube_00004.png").write_bytes(b"not a png")
+    ds = SymsolDataset(symsol_root, "train", ["cube"], image_size=SIZE)
+    with pytest.raises(ValueError, match="cube_00004.png"):
+        ds[4]
+    (symsol_root / "train" / "images" / "cube_00004.png").unlink()
+    with pytest.raises(FileNotFoundError, match="cube_00004.png"):
+        SymsolDataset(symsol_root, "train", ["cube"], image_size=SIZE)

@@ -1,0 +1,39 @@
+"""Hydra callbacks used by ``conf/hydra/default.yaml``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from hydra.core.hydra_config import HydraConfig
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig, OmegaConf
+
+__all__ = ["RefuseExistingOutputDir"]
+
+
+class RefuseExistingOutputDir(Callback):
+    """Stop before Hydra writes anything when the run (or sweep) directory already holds files.
+
+    Hydra saves ``.hydra/*.yaml`` into the output directory before the task starts, so an explicit
+    ``hydra.run.dir`` pointing at an earlier run would overwrite that run's saved config. The
+    default directories are unique per run (date, time and process id) and never trigger this.
+    The process exits with status 1 and a message naming the directory.
+    """
+
+    def _check(self, config: DictConfig, key: str) -> None:
+        HydraConfig.instance().set_config(config)  # lets ${hydra:...} in the directory resolve
+        path = Path(str(OmegaConf.select(config, key)))
+        if path.is_dir() and any(path.iterdir()):
+            # Hydra turns exceptions raised by callbacks into warnings; SystemExit does stop the run.
+            raise SystemExit(
+                f"FileExistsError: {key}={path} already holds files (an earlier run?). Nothing was written; "
+                f"choose a new directory (or leave {key} at its default, which is unique per run). To continue an "
+                "earlier run, start a new one with ckpt_path=<old run>/checkpoints/last.ckpt"
+            )
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._check(config, "hydra.run.dir")
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self._check(config, "hydra.sweep.dir")

@@ -1,0 +1,148 @@
+"""The training run behind ``python -m src.train``: build everything from the Hydra config, fit, test.
+
+The run directory (``paths.output_dir``, one per run, created by Hydra) receives
+``checkpoints/{last,epoch=*}.ckpt``, the logger's files (``wandb/``, ``csv/``, ``tensorboard/``),
+``metrics.json`` and ``.hydra/`` (the composed config). Nothing already there is overwritten:
+a run refuses to start in a directory that already holds checkpoints or metrics.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import time
+from pathlib import Path
+
+import lightning.pytorch as pl
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+__all__ = ["format_metrics_table", "register_resolvers", "train"]
+
+log = logging.getLogger(__name__)
+
+TABLE_COLUMNS = (
+    ("log_likelihood", "log lik.", "{:9.3f}"),
+    ("spread_deg", "spread", "{:8.2f}"),
+    ("acc15", "acc@15", "{:7.3f}"),
+    ("acc30", "acc@30", "{:7.3f}"),
+    ("median_error_deg", "med.err", "{:8.2f}"),
+)
+
+
+def register_resolvers() -> None:
+    """OmegaConf resolvers used by ``conf/``: ``${pid:}`` (this process id, keeps run directories unique)."""
+    if not OmegaConf.has_resolver("pid"):
+        OmegaConf.register_new_resolver("pid", lambda: os.getpid(), use_cache=True)
+
+
+def format_metrics_table(metrics: dict[str, float], class_names: list[str]) -> str:
+    """Per-class rows and the class mean as a fixed-width text table."""
+    columns = [c for c in TABLE_COLUMNS if c[0] in metrics]
+    width = max([len(n) for n in class_names] + [len("mean")])
+    lines = [" ".join([f"{'class':<{width}}"] + [f"{title:>{len(fmt.format(0.0))}}" for _, title, fmt in columns])]
+    for name in [*class_names, "mean"]:
+        key = "" if name == "mean" else f"/{name}"
+        cells = []
+        for metric, _, fmt in columns:
+            value = metrics.get(metric + key, math.nan)
+            cells.append(fmt.format(value))
+        if any(metric + key in metrics for metric, _, _ in columns):
+            lines.append(" ".join([f"{name:<{width}}", *cells]))
+    return "\n".join(lines)
+
+
+def _check_config(cfg: DictConfig) -> None:
+    ckpt = cfg.get("ckpt_path")
+    if ckpt is not None and not Path(ckpt).is_file():
+        raise FileNotFoundError(
+            f"ckpt_path={ckpt} does not exist; pass the checkpoint of an earlier run, "
+            "e.g. ckpt_path=logs/train/runs/<run>/checkpoints/last.ckpt"
+        )
+    seed = cfg.get("seed")
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
+        raise ValueError(f"seed must be an integer or null, got {seed!r}")
+    for key in ("train", "test"):
+        if not isinstance(cfg.get(key), bool):
+            raise ValueError(f"{key} must be true or false, got {cfg.get(key)!r}")
+
+
+def _instantiate_list(group: DictConfig | None, what: str) -> list:
+    """Every entry of a config group that has a ``_target_`` (others are ignored)."""
+    out = []
+    if not group:
+        return out
+    if not isinstance(group, DictConfig):
+        raise ValueError(f"{what} config must be a mapping of name -> {{_target_: ...}}")
+    for name, conf in group.items():
+        if isinstance(conf, DictConfig) and "_target_" in conf:
+            log.info("Instantiating %s %s <%s>", what, name, conf._target_)
+            out.append(instantiate(conf))
+    return out
+
+
+def train(cfg: DictConfig) -> dict[str, float]:
+    """Fit and/or test as ``cfg`` says; returns the test metrics (empty when ``test=false``)."""
+    _check_config(cfg)
+    output_dir = Path(cfg.paths.output_dir)
+    for existing in (output_dir / "checkpoints", output_dir / "metrics.json"):
+        if existing.exists() and (existing.is_file() or any(existing.iterdir())):
+            raise FileExistsError(
+                f"{existing} already exists: another run used {output_dir}. Runs never share a directory; "
+                "choose another hydra.run.dir (or leave it at its default, which is unique per run)"
+            )
+    if cfg.get("seed") is not None:
+        pl.seed_everything(cfg.seed, workers=True)
+
+    log.info("Instantiating datamodule <%s>", cfg.dataset._target_)
+    datamodule = instantiate(cfg.dataset)
+    log.info("Instantiating model <%s> with network <%s>", cfg.model._target_, cfg.model.net._target_)
+    model = instantiate(cfg.model)
+    if model.class_names is None:
+        model.class_names = list(getattr(datamodule, "class_names", []) or []) or None
+    model.run_config = OmegaConf.to_container(cfg, resolve=True)
+    callbacks = _instantiate_list(cfg.get("callbacks"), "callback")
+    loggers = _instantiate_list(cfg.get("logger"), "logger")
+    if not loggers:  # the learning-rate monitor needs a logger to write to
+        callbacks = [c for c in callbacks if not isinstance(c, pl.callbacks.LearningRateMonitor)]
+    trainer: pl.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
+    for logger in loggers:
+        logger.log_hyperparams(model.run_config)
+
+    timings: dict[str, float] = {}
+    if cfg.train:
+        start = time.perf_counter()
+        trainer.fit(model=model, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
+        timings["train_seconds"] = time.perf_counter() - start
+        log.info("Training took %.1f s", timings["train_seconds"])
+        if trainer.interrupted:
+            log.warning("Training was interrupted; skipping the test")
+            return {}
+    metrics: dict[str, float] = {}
+    if cfg.test:
+        if not cfg.train and cfg.get("ckpt_path") is None:
+            log.warning("Testing a model that was neither trained nor loaded (train=false, ckpt_path=null)")
+        start = time.perf_counter()
+        trainer.test(model=model, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path") if not cfg.train else None)
+        timings["test_seconds"] = time.perf_counter() - start
+        metrics = dict(model.test_metrics)
+        if trainer.is_global_zero and metrics:
+            output_dir.mkdir(parents=True, exist_ok=True)
+            with open(output_dir / "metrics.json", "x") as f:  # "x": never overwrite
+                json.dump({**metrics, **timings}, f, indent=2, sort_keys=True)
+            names = model.class_names or []
+            print(f"\nTest metrics ({cfg.get('task_name')}, eval grid level {model.hparams.eval_grid_level}):")
+            print(format_metrics_table(metrics, names))
+            print(f"Run directory: {output_dir}\n")
+    _finish_loggers(loggers)
+    return {**metrics, **timings}
+
+
+def _finish_loggers(loggers: list) -> None:
+    for logger in loggers:
+        if type(logger).__name__ == "WandbLogger":
+            import wandb
+
+            wandb.finish()

@@ -1,0 +1,23 @@
+"""Train (and test) a pose network: ``python -m src.train [overrides]`` from the repository root.
+
+Everything is configured in ``conf/train.yaml`` and its groups; see the README for examples.
+"""
+
+import hydra
+from omegaconf import DictConfig
+
+# image2sphere (imported first by this line) makes torchvision and Lightning importable on CPU torch.
+from image2sphere.training import register_resolvers, train
+
+register_resolvers()
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="train.yaml")
+def main(cfg: DictConfig) -> float | None:
+    metrics = train(cfg)
+    metric = cfg.get("optimized_metric")
+    return metrics.get(metric) if metric else None
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,142 @@
+"""``python -m src.train`` end to end: fast_dev_run, a two-job sweep, exact resume, faults.
+
+Each run renders (once, cached in a per-session directory) a tiny SYMSOL-style set and trains a
+small I2S on it; everything is written under pytest's tmp directories.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+
+# Small and fast: 32 px images, lmax 2, coarse grids, a narrow network.
+TINY = [
+    "dataset.render.train=10",
+    "dataset.render.test=3",
+    "dataset.val_per_shape=2",
+    "dataset.image_size=32",
+    "dataset.batch_size=6",
+    "lmax=2",
+    "train_grid_level=2",
+    "eval_grid_level=3",
+    "model.spread_grid_level=2",
+    "model.net.sphere_channels=16",
+    "model.net.so3_channels=4",
+    "model.net.activation_resolution=4",
+    "trainer.accelerator=cpu",
+    "trainer.num_sanity_val_steps=0",
+    "callbacks.progress_bar.refresh_rate=0",
+]
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("data")
+
+
+def run_train(args: list[str], data_dir: Path, log_dir: Path, check: bool = True) -> subprocess.CompletedProcess:
+    flags = [a for a in args if a.startswith("-")]
+    overrides = [a for a in args if not a.startswith("-")]
+    keys = {a.split("=")[0] for a in overrides}
+    base = [a for a in TINY if a.split("=")[0] not in keys]  # args win over the tiny defaults
+    paths = [f"paths.data_dir={data_dir}", f"paths.log_dir={log_dir}"]
+    cmd = [sys.executable, "-m", "src.train", *flags, *base, *paths, *overrides]
+    env = {**os.environ, "WANDB_SILENT": "true", "OMP_NUM_THREADS": "2"}
+    proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
+    if check and proc.returncode != 0:
+        raise AssertionError(
+            f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
+        )
+    return proc
+
+
+def read_metrics(run_dir: Path) -> dict:
+    return json.loads((run_dir / "metrics.json").read_text())
+
+
+def test_fast_dev_run_through_entry_point(tmp_path, data_dir):
+    run_train(["debug=fdr", f"hydra.run.dir={tmp_path / 'run'}"], data_dir, tmp_path / "logs")
+    metrics = read_metrics(tmp_path / "run")
+    assert {"log_likelihood/cube", "log_likelihood/cone", "spread_deg", "acc15", "median_error_deg"} <= set(metrics)
+    assert metrics["n_images"] > 0
+    assert (tmp_path / "run" / ".hydra" / "config.yaml").is_file()
+    # the rendered set is in the published layout, cached for later runs
+    (rendered,) = (data_dir / "symsol_rendered").iterdir()
+    assert (rendered / "train" / "rotations.npz").is_file() and (rendered / "test" / "images").is_dir()
+
+
+def test_default_run_dirs_are_unique_and_existing_dirs_are_refused(tmp_path, data_dir):
+    logs = tmp_path / "logs"
+    run_train(["debug=fdr"], data_dir, logs)
+    run_train(["debug=fdr"], data_dir, logs)
+    runs = sorted((logs / "debug" / "runs").iterdir())
+    assert len(runs) == 2 and all((r / "metrics.json").is_file() for r in runs)
+    before = {p: p.stat().st_mtime_ns for p in runs[0].rglob("*")}
+    proc = run_train(["debug=fdr", f"hydra.run.dir={runs[0]}"], data_dir, logs, check=False)
+    assert proc.returncode != 0 and "already holds files" in proc.stderr
+    assert {p: p.stat().st_mtime_ns for p in runs[0].rglob("*")} == before  # untouched
+
+
+def test_missing_checkpoint_is_reported(tmp_path, data_dir):
+    proc = run_train(["debug=fdr", "ckpt_path=/nonexistent/last.ckpt"], data_dir, tmp_path / "logs", check=False)
+    assert proc.returncode != 0 and "ckpt_path=/nonexistent/last.ckpt does not exist" in proc.stderr
+
+
+def test_nan_loss_stops_without_writing_a_checkpoint(tmp_path, data_dir):
+    run = tmp_path / "run"
+    args = ["logger=none", "trainer.max_epochs=3", "model.optimizer.lr=1e30", f"hydra.run.dir={run}"]
+    proc = run_train(args, data_dir, tmp_path / "logs", check=False)
+    assert proc.returncode != 0
+    assert "NonFiniteLossError" in proc.stderr and "Lower model.optimizer.lr" in proc.stderr
+    assert not (run / "metrics.json").exists()
+    for ckpt in (run / "checkpoints").glob("*.ckpt"):  # whatever was saved holds finite weights only
+        state = torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"]
+        assert all(torch.isfinite(v).all() for v in state.values() if v.is_floating_point())
+
+
+@pytest.mark.slow
+def test_multirun_sweep_runs_each_job_in_its_own_directory(tmp_path, data_dir):
+    logs = tmp_path / "logs"
+    run_train(["-m", "lmax=2,3", "logger=csv", "trainer.max_epochs=1"], data_dir, logs)
+    (sweep,) = (logs / "train" / "multiruns").iterdir()
+    jobs = sorted(p for p in sweep.iterdir() if p.is_dir() and p.name.isdigit())
+    assert [j.name for j in jobs] == ["0", "1"]
+    for job, lmax in zip(jobs, (2, 3), strict=True):
+        assert f"lmax: {lmax}" in (job / ".hydra" / "config.yaml").read_text()
+        assert (job / "checkpoints" / "last.ckpt").is_file() and (job / "metrics.json").is_file()
+        assert (job / "csv").is_dir()
+
+
+@pytest.mark.slow
+def test_resume_from_last_checkpoint_matches_uninterrupted_run(tmp_path, data_dir):
+    logs = tmp_path / "logs"
+    common = ["logger=csv", "model.scheduler.step_size=1", "model.optimizer.lr=0.01"]
+    full, first, resumed = tmp_path / "full", tmp_path / "first", tmp_path / "resumed"
+    run_train([*common, "trainer.max_epochs=3", f"hydra.run.dir={full}"], data_dir, logs)
+    run_train([*common, "trainer.max_epochs=2", f"hydra.run.dir={first}"], data_dir, logs)
+    first_files = {p: p.stat().st_mtime_ns for p in first.rglob("*")}
+    ckpt = first / "checkpoints" / "last.ckpt"
+    run_train([*common, "trainer.max_epochs=3", f"ckpt_path={ckpt}", f"hydra.run.dir={resumed}"], data_dir, logs)
+
+    a = torch.load(full / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    b = torch.load(resumed / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert a["epoch"] == b["epoch"] and a["global_step"] == b["global_step"]
+    assert a["lr_schedulers"][0]["last_epoch"] == b["lr_schedulers"][0]["last_epoch"] == 3
+    for key, value in a["state_dict"].items():
+        torch.testing.assert_close(b["state_dict"][key], value, rtol=1e-5, atol=1e-6, msg=f"weights differ: {key}")
+    for key, state in a["optimizer_states"][0]["state"].items():  # e.g. Adam's moments and step counts
+        for name, value in state.items():
+            torch.testing.assert_close(b["optimizer_states"][0]["state"][key][name], value, rtol=1e-5, atol=1e-6)
+    ma, mb = read_metrics(full), read_metrics(resumed)
+    for key, value in ma.items():
+        if not key.endswith("_seconds"):
+            assert mb[key] == pytest.approx(value, rel=1e-4, abs=1e-4), key
+    assert {p: p.stat().st_mtime_ns for p in first.rglob("*")} == first_files  # the old run is untouched

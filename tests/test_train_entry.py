@@ -10,6 +10,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -42,15 +43,21 @@ def data_dir(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("data")
 
 
-def run_train(args: list[str], data_dir: Path, log_dir: Path, check: bool = True) -> subprocess.CompletedProcess:
+ENV = {**os.environ, "WANDB_SILENT": "true", "OMP_NUM_THREADS": "2"}
+
+
+def train_command(args: list[str], data_dir: Path, log_dir: Path) -> list[str]:
     flags = [a for a in args if a.startswith("-")]
     overrides = [a for a in args if not a.startswith("-")]
     keys = {a.split("=")[0] for a in overrides}
     base = [a for a in TINY if a.split("=")[0] not in keys]  # args win over the tiny defaults
     paths = [f"paths.data_dir={data_dir}", f"paths.log_dir={log_dir}"]
-    cmd = [sys.executable, "-m", "src.train", *flags, *base, *paths, *overrides]
-    env = {**os.environ, "WANDB_SILENT": "true", "OMP_NUM_THREADS": "2"}
-    proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
+    return [sys.executable, "-m", "src.train", *flags, *base, *paths, *overrides]
+
+
+def run_train(args: list[str], data_dir: Path, log_dir: Path, check: bool = True) -> subprocess.CompletedProcess:
+    cmd = train_command(args, data_dir, log_dir)
+    proc = subprocess.run(cmd, cwd=REPO, env=ENV, capture_output=True, text=True, timeout=900)
     if check and proc.returncode != 0:
         raise AssertionError(
             f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
@@ -140,3 +147,33 @@ def test_resume_from_last_checkpoint_matches_uninterrupted_run(tmp_path, data_di
         if not key.endswith("_seconds"):
             assert mb[key] == pytest.approx(value, rel=1e-4, abs=1e-4), key
     assert {p: p.stat().st_mtime_ns for p in first.rglob("*")} == first_files  # the old run is untouched
+
+
+@pytest.mark.slow
+def test_run_killed_mid_epoch_resumes_from_its_last_epoch(tmp_path, data_dir):
+    logs, killed = tmp_path / "logs", tmp_path / "killed"
+    cmd = train_command(["logger=none", "trainer.max_epochs=100", f"hydra.run.dir={killed}"], data_dir, logs)
+    proc = subprocess.Popen(cmd, cwd=REPO, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    ckpt = killed / "checkpoints" / "last.ckpt"
+    try:
+        deadline = time.monotonic() + 600
+        while not ckpt.exists() and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.2)
+        assert ckpt.exists(), "no checkpoint was written"
+        time.sleep(1.0)  # into the next epoch
+    finally:
+        proc.kill()  # SIGKILL: no chance to clean up
+        proc.wait()
+    saved = torch.load(ckpt, map_location="cpu", weights_only=True)  # complete, loadable, plain types only
+    steps_per_epoch = 3  # 2 shapes x (10 - 2 validation) images in batches of 6
+    assert saved["global_step"] % steps_per_epoch == 0 and saved["global_step"] >= steps_per_epoch
+    epochs_done = saved["global_step"] // steps_per_epoch
+    resumed = tmp_path / "resumed"
+    proc = run_train(
+        ["logger=csv", f"trainer.max_epochs={epochs_done + 1}", f"ckpt_path={ckpt}", f"hydra.run.dir={resumed}"],
+        data_dir,
+        logs,
+    )
+    assert "Restored all states from the checkpoint" in proc.stdout + proc.stderr
+    final = torch.load(resumed / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    assert final["global_step"] == saved["global_step"] + steps_per_epoch  # only the lost epoch was redone

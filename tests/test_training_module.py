@@ -53,7 +53,7 @@ def _eval_batch(B: int = 4, M: int = 3) -> dict:
     }
 
 
-@pytest.mark.filterwarnings("ignore:You are trying to `self.log()`")
+@pytest.mark.filterwarnings("ignore:You are trying to .self.log")
 def test_training_loss_is_dense_cross_entropy_at_nearest_grid_point():
     module = _module()
     batch = {"image": torch.randn(4, 3, 8, 8), "rotation": haar_rotations(4, seed=1, dtype=torch.float32)}

@@ -65,6 +65,9 @@ def test_streamed_log_likelihood_matches_dense_reference_and_masks_padding():
     dense = log_density_from_grid_logits(dense_grid_logits(coeffs, lmax, LEVEL), targets, mask, LEVEL)
     assert torch.isnan(fast[~mask]).all() and torch.isnan(dense[~mask]).all()
     torch.testing.assert_close(fast[mask], dense[mask])
+    # a log-normaliser computed elsewhere (e.g. with the argmax) gives the same values
+    given = log_likelihood_pairs(dist, targets, mask, LEVEL, log_normalizer=dist.log_normalizer(LEVEL))
+    torch.testing.assert_close(given[mask], fast[mask])
 
 
 def test_min_angular_error_against_scipy_and_mask():

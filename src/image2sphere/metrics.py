@@ -55,6 +55,11 @@ def check_targets(targets: torch.Tensor, mask: torch.Tensor | None, batch: int |
     return mask
 
 
+def _fill_padding(targets: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Padding entries (possibly NaN) replaced by the image's first target, so they can be read safely."""
+    return torch.where(mask[..., None, None], targets, targets[:, :1].expand_as(targets))
+
+
 def min_angular_error_deg(pred: torch.Tensor, targets: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
     """Angle ``(B,)`` in degrees from ``pred (B, 3, 3)`` to the nearest real target."""
     if pred.ndim != 3 or pred.shape[-2:] != (3, 3):
@@ -65,13 +70,18 @@ def min_angular_error_deg(pred: torch.Tensor, targets: torch.Tensor, mask: torch
 
 
 def log_likelihood_pairs(
-    dist: SO3Distribution, targets: torch.Tensor, mask: torch.Tensor | None, level: int
+    dist: SO3Distribution,
+    targets: torch.Tensor,
+    mask: torch.Tensor | None,
+    level: int,
+    log_normalizer: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Log density at every (image, target) pair: ``(B, M)``, NaN where ``mask`` is False."""
+    """Log density at every (image, target) pair: ``(B, M)``, NaN where ``mask`` is False.
+
+    ``log_normalizer`` ``(B,)``: the grid's logsumexp at ``level`` when already computed.
+    """
     mask = check_targets(targets, mask, dist.batch_size)
-    # Padding may be NaN: read a real rotation there and blank the result afterwards.
-    safe = torch.where(mask[..., None, None], targets, targets[:, :1].expand_as(targets))
-    ll = dist.log_density(safe, level)  # [B, M]
+    ll = dist.log_density(_fill_padding(targets, mask), level, log_normalizer)  # [B, M]
     return ll.masked_fill(~mask, math.nan)
 
 
@@ -90,8 +100,7 @@ def log_density_from_grid_logits(
             f"grid_logits must have shape (B, {n_points}) for level {level}, got {tuple(grid_logits.shape)}"
         )
     mask = check_targets(targets, mask, len(grid_logits))
-    safe = torch.where(mask[..., None, None], targets, targets[:, :1].expand_as(targets))
-    index = so3_healpix_nearest_index(safe, level).to(grid_logits.device)  # [B, M]
+    index = so3_healpix_nearest_index(_fill_padding(targets, mask), level).to(grid_logits.device)  # [B, M]
     log_p = torch.log_softmax(grid_logits, dim=1).gather(1, index)  # [B, M]
     return (log_p + math.log(n_points) + LOG_UNIFORM_DENSITY).masked_fill(~mask, math.nan)
 

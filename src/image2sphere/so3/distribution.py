@@ -89,20 +89,31 @@ class SO3Distribution:
         """``logsumexp`` of the signal over the grid, ``(B,)``, streamed (no ``(B, N)`` tensor)."""
         return self._evaluator(level).logsumexp(self.coeffs)
 
-    def log_prob_at_index(self, index: torch.Tensor, level: int) -> torch.Tensor:
-        """``log p_i`` at grid indices ``(B, K)`` or ``(K,)``: ``(B, K)``, streamed."""
-        ev = self._evaluator(level)
-        return ev.logits_at(self.coeffs, index) - ev.logsumexp(self.coeffs)[:, None]
+    def log_prob_at_index(
+        self, index: torch.Tensor, level: int, log_normalizer: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """``log p_i`` at grid indices ``(B, K)`` or ``(K,)``: ``(B, K)``, streamed.
 
-    def log_density(self, rotations: torch.Tensor, level: int) -> torch.Tensor:
+        ``log_normalizer`` ``(B,)``: :meth:`log_normalizer` of ``level`` when the caller already has it
+        (e.g. from ``logsumexp_and_max``), so the grid is not swept a second time.
+        """
+        ev = self._evaluator(level)
+        if log_normalizer is None:
+            log_normalizer = ev.logsumexp(self.coeffs)
+        return ev.logits_at(self.coeffs, index) - log_normalizer[:, None]
+
+    def log_density(
+        self, rotations: torch.Tensor, level: int, log_normalizer: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """Log density (Haar measure of volume pi^2) at rotations ``(B, K, 3, 3)`` or ``(K, 3, 3)``: ``(B, K)``.
 
-        Read at the grid point nearest each rotation: ``log(p_nearest * N / pi^2)``.
+        Read at the grid point nearest each rotation: ``log(p_nearest * N / pi^2)``. ``log_normalizer``
+        as in :meth:`log_prob_at_index`.
         """
         rotations = self._check_query(rotations)
         index = so3_healpix_nearest_index(rotations, level).to(self.coeffs.device)  # [(B,) K]
         n_points = math.prod(so3_grid_size(level))
-        return self.log_prob_at_index(index, level) + math.log(n_points) + LOG_UNIFORM_DENSITY
+        return self.log_prob_at_index(index, level, log_normalizer) + math.log(n_points) + LOG_UNIFORM_DENSITY
 
     # ------------------------------------------------------------------ point estimate and samples
     def mode(self, level: int, refine: bool = False, steps: int = 100, lr: float | None = None) -> torch.Tensor:

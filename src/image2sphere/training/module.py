@@ -28,6 +28,7 @@ from torch import nn
 from image2sphere.data.common import stable_seed
 from image2sphere.metrics import (
     check_targets,
+    log_likelihood_pairs,
     min_angular_error_deg,
     spread_deg,
     summarize_pose_metrics,
@@ -142,17 +143,16 @@ class PoseEstimationModule(pl.LightningModule):
             pred = dist.mode(level, refine=True).to(targets.dtype)
         else:
             pred = so3_healpix_index_to_matrix(argmax, level, dtype=targets.dtype).to(targets.device)
-        index = so3_healpix_nearest_index(targets, level).to(coeffs.device)  # [B, M]
+        ll = log_likelihood_pairs(dist, targets, mask, level, log_normalizer=lse)  # [B, M], NaN on padding
         log_n = math.log(math.prod(so3_grid_size(level)))
-        ll = ev.logits_at(coeffs, index) - lse[:, None] + log_n + LOG_UNIFORM_DENSITY  # [B, M]
-        ll = ll.masked_fill(~mask, 0.0)
         out = {
             "class_index": batch["class_index"],
             "index": batch.get("index", torch.full_like(batch["class_index"], -1)),
             "error_deg": min_angular_error_deg(pred, targets, mask),
-            "ll_sum": ll.sum(1),
+            "ll_sum": ll.masked_fill(~mask, 0.0).sum(1),
             "ll_count": mask.sum(1),
-            "nll_first": lse - ev.logits_at(coeffs, index[:, :1])[:, 0],
+            # -log p at the grid point nearest the rendering rotation (the loss, at this level)
+            "nll_first": log_n + LOG_UNIFORM_DENSITY - ll[:, 0],
         }
         if spread_level is not None:
             out["spread"] = spread_deg(dist, targets, mask, spread_level)

@@ -58,7 +58,9 @@ from image2sphere.data.shapes import (
     SPHERE_RADIUS,
     ShapeGeometry,
     check_shape,
+    check_shape_list,
     equivalent_rotation_sets,
+    exact_matmul3,
     shape_geometry,
 )
 from image2sphere.so3.rotations import check_rotation_matrix, random_rotations
@@ -113,15 +115,6 @@ def _rotate(R: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
         R[:, None, :, 0] * v[None, :, 0, None]
         + R[:, None, :, 1] * v[None, :, 1, None]
         + R[:, None, :, 2] * v[None, :, 2, None]
-    )
-
-
-def _mm(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
-    """``A @ B`` for broadcastable ``(..., 3, 3)`` stacks as explicit sums (bit-identical for any batch)."""
-    return (
-        A[..., :, 0, None] * B[..., 0, None, :]
-        + A[..., :, 1, None] * B[..., 1, None, :]
-        + A[..., :, 2, None] * B[..., 2, None, :]
     )
 
 
@@ -261,7 +254,7 @@ def _quadric_interval(
     """
     quad = geom.quadric
     dt = R.dtype
-    Q = _mm(_mm(R, quad.Q.to(dt)[None]), R.transpose(1, 2))  # [B, 3, 3]
+    Q = exact_matmul3(exact_matmul3(R, quad.Q.to(dt)[None]), R.transpose(1, 2))  # [B, 3, 3]
     bq = _rotate(R, quad.b.to(dt)[None])[:, 0]  # [B, 3]
     q = {(i, j): Q[:, i, j, None, None] for i in range(3) for j in range(3)}
     bc = [bq[:, i, None, None] for i in range(3)]
@@ -451,17 +444,6 @@ def _check_splits(splits) -> dict[str, int]:
     return dict(splits)
 
 
-def _check_shapes(shapes) -> list[str]:
-    if isinstance(shapes, str) or not isinstance(shapes, Sequence) or not shapes:
-        raise ValueError(f"shapes must be a non-empty sequence of names from {', '.join(SHAPES)}; got {shapes!r}")
-    unknown = [s for s in shapes if s not in SHAPES]
-    if unknown:
-        raise ValueError(f"shapes: unknown shape(s) {unknown}; valid shapes are {', '.join(SHAPES)}")
-    if len(set(shapes)) != len(shapes):
-        raise ValueError(f"shapes: duplicate names in {list(shapes)}")
-    return list(shapes)
-
-
 def _is_complete(root: Path, params: dict) -> bool:
     """Whether ``root`` holds every file the parameters call for (npz keys and all images)."""
     for split, n in params["splits"].items():
@@ -516,7 +498,7 @@ def render_symsol(
     """
     root = Path(root)
     splits = _check_splits(splits)
-    shapes = _check_shapes(shapes)
+    shapes = check_shape_list(shapes)
     _check_int("image_size", image_size, 1)
     _check_int("supersample", supersample, 1)
     _check_int("batch_size", batch_size, 1)
@@ -545,16 +527,7 @@ def render_symsol(
                 existing = None
             if existing == params and _is_complete(root, params):
                 log.info("SYMSOL set in %s is complete with the same parameters: not re-rendering", root)
-                seconds = time.perf_counter() - t0
-                return {
-                    "root": str(root),
-                    "cached": True,
-                    "counts": counts,
-                    "images": total,
-                    "rendered": 0,
-                    "seconds": seconds,
-                    "images_per_second": 0.0,
-                }
+                return _writer_result(root, counts, total, rendered=0, seconds=time.perf_counter() - t0)
             if isinstance(existing, dict) and existing.get("format") == "SYMSOL" and existing != params:
                 raise FileExistsError(
                     f"{root} holds a SYMSOL set rendered with different parameters ({existing}); "
@@ -615,15 +588,20 @@ def render_symsol(
     except BaseException:
         shutil.rmtree(partial, ignore_errors=True)
         raise
-    seconds = time.perf_counter() - t0
+    return _writer_result(root, counts, total, rendered=total, seconds=time.perf_counter() - t0)
+
+
+def _writer_result(root: Path, counts: dict, total: int, rendered: int, seconds: float) -> dict:
+    """What :func:`render_symsol` returns; ``rendered == 0`` is a cache hit."""
+    speed = 0.0 if rendered == 0 else (rendered / seconds if seconds > 0 else float("inf"))
     return {
         "root": str(root),
-        "cached": False,
+        "cached": rendered == 0,
         "counts": counts,
         "images": total,
-        "rendered": total,
+        "rendered": rendered,
         "seconds": seconds,
-        "images_per_second": total / seconds if seconds > 0 else float("inf"),
+        "images_per_second": speed,
     }
 
 

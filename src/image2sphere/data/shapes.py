@@ -73,6 +73,7 @@ interval is ``> 0``. The mark is visible iff any of its parts is.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cache
 
@@ -90,6 +91,7 @@ __all__ = [
     "Quadric",
     "ShapeGeometry",
     "check_shape",
+    "check_shape_list",
     "equivalent_rotation_sets",
     "equivalent_rotations",
     "mark_visible",
@@ -184,6 +186,18 @@ def check_shape(shape: str) -> str:
     if not isinstance(shape, str) or shape not in SHAPES:
         raise ValueError(f"shape must be one of {', '.join(SHAPES)}; got {shape!r}")
     return shape
+
+
+def check_shape_list(shapes, key: str = "shapes") -> list[str]:
+    """``shapes`` as a list, or ``ValueError`` naming ``key`` unless it is a non-empty sequence of distinct names."""
+    if isinstance(shapes, str) or not isinstance(shapes, Sequence) or not shapes:
+        raise ValueError(f"{key} must be a non-empty sequence of names from {', '.join(SHAPES)}; got {shapes!r}")
+    unknown = [s for s in shapes if s not in SHAPES]
+    if unknown:
+        raise ValueError(f"{key}: unknown shape(s) {unknown}; valid shapes are {', '.join(SHAPES)}")
+    if len(set(shapes)) != len(shapes):
+        raise ValueError(f"{key}: duplicate names in {list(shapes)}")
+    return list(shapes)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -454,7 +468,7 @@ def mark_visible(shape: str, rotations: torch.Tensor) -> torch.Tensor:
     return _visible_from_zrow(geom, rotations[..., 2, :].to(torch.float64))
 
 
-def _compose(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
+def exact_matmul3(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
     """``A @ B`` for broadcastable ``(..., 3, 3)`` stacks, as explicit sums (bit-identical for any batch)."""
     return (
         A[..., :, 0, None] * B[..., 0, None, :]
@@ -512,11 +526,11 @@ def equivalent_rotation_sets(
         R = rotations[i : i + chunk_size].to(torch.float64)
         m = mask[i : i + chunk_size]
         if bool(m.all()):
-            out[i : i + chunk_size] = _compose(R[:, None], group[None]).to(dtype)
+            out[i : i + chunk_size] = exact_matmul3(R[:, None], group[None]).to(dtype)
             continue
         order = torch.argsort((~m).to(torch.int8), dim=1, stable=True)[:, :m_max]  # members first
         S = group[order]  # [n, m_max, 3, 3]
-        prod = _compose(R[:, None], S)
+        prod = exact_matmul3(R[:, None], S)
         keep = torch.arange(m_max)[None, :] < counts[i : i + chunk_size, None]
         out[i : i + chunk_size] = torch.where(keep[..., None, None], prod, float("nan")).to(dtype)
     if n:

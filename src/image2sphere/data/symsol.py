@@ -30,7 +30,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from image2sphere.data.common import EpochShuffleSampler, load_image, normalize_images, stable_seed
-from image2sphere.data.shapes import SHAPES, SYMSOL_I_SHAPES
+from image2sphere.data.shapes import SYMSOL_I_SHAPES, check_shape_list
 
 __all__ = [
     "LABEL_MODES",
@@ -45,14 +45,9 @@ LABEL_MODES = ("random", "first")
 ORTHONORMAL_ATOL = 1e-3
 
 
-def check_shapes(shapes: Sequence[str], key: str = "shapes") -> tuple[str, ...]:
-    if isinstance(shapes, str):
-        shapes = [shapes]
-    shapes = tuple(shapes)
-    unknown = [s for s in shapes if s not in SHAPES]
-    if not shapes or unknown or len(set(shapes)) != len(shapes):
-        raise ValueError(f"{key} must be distinct names from {list(SHAPES)}, got {list(shapes)}")
-    return shapes
+def _shape_tuple(shapes: Sequence[str] | str, key: str) -> tuple[str, ...]:
+    """Validated shape names; a single name is accepted for one shape (e.g. ``dataset.shapes=cube``)."""
+    return tuple(check_shape_list([shapes] if isinstance(shapes, str) else list(shapes), key))
 
 
 def _padding_rows(a: np.ndarray) -> np.ndarray:
@@ -155,7 +150,7 @@ class SymsolDataset(Dataset):
             raise ValueError(f"label must be one of {LABEL_MODES}, got {label!r}")
         self.root = Path(root)
         self.split = split
-        self.shapes = check_shapes(shapes)
+        self.shapes = _shape_tuple(shapes, "shapes")
         self.label = label
         self.return_all = return_all
         self.image_size = int(image_size)
@@ -261,7 +256,7 @@ class SymsolDataModule(pl.LightningDataModule):
         render_dir: str | None = None,
     ):
         super().__init__()
-        self.shapes = check_shapes(shapes, "dataset.shapes")
+        self.shapes = _shape_tuple(shapes, "dataset.shapes")
         if label not in LABEL_MODES:
             raise ValueError(f"dataset.label must be one of {LABEL_MODES}, got {label!r}")
         for key, value in (("train_per_shape", train_per_shape), ("test_per_shape", test_per_shape)):

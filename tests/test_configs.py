@@ -22,15 +22,26 @@ def options(group: str) -> list[str]:
     return sorted(p.stem for p in (CONF / group).glob("*.yaml"))
 
 
-def compose_cfg(tmp_path: Path, overrides: list[str] = ()) -> DictConfig:
-    """The real ``conf/train.yaml`` with ``overrides``, every path moved into ``tmp_path``."""
+@pytest.fixture(scope="module")
+def fixture_data(tmp_path_factory) -> Path:
+    """Tiny copies of every dataset in its published layout, under the folder names the configs use."""
+    from image2sphere.data.fixtures.__main__ import main
+
+    root = tmp_path_factory.mktemp("fixtures") / "data"
+    assert main([str(root)]) == 0
+    return root
+
+
+def compose_cfg(tmp_path: Path, overrides: list[str] = (), data_dir: Path | None = None) -> DictConfig:
+    """The real ``conf/train.yaml`` with ``overrides``, every path moved into ``tmp_path`` (the data
+    to ``data_dir`` when given)."""
     register_resolvers()
     GlobalHydra.instance().clear()
     with initialize(version_base="1.3", config_path="../conf"):
         cfg = compose(config_name="train", return_hydra_config=True, overrides=list(overrides))
     with open_dict(cfg):
         cfg.paths.root_dir = str(tmp_path)
-        cfg.paths.data_dir = str(tmp_path / "data")
+        cfg.paths.data_dir = str(data_dir or tmp_path / "data")
         cfg.paths.log_dir = str(tmp_path / "logs")
         cfg.paths.output_dir = str(tmp_path / "out")
         cfg.hydra.runtime.output_dir = str(tmp_path / "out")
@@ -50,7 +61,7 @@ def test_defaults_compose_to_the_embedded_run(tmp_path):
     # the quick built-in run brings its own schedule ...
     assert cfg.model.optimizer._target_ == "torch.optim.Adam" and cfg.trainer.max_epochs < 40
     # ... every other dataset gets the paper's: SGD, Nesterov 0.9, lr 1e-3, x0.1 every 15 of 40 epochs
-    paper = compose_cfg(tmp_path, ["dataset=symsol"])
+    paper = compose_cfg(tmp_path, ["dataset=symsol1"])
     opt = paper.model.optimizer
     assert opt._target_ == "torch.optim.SGD" and opt._partial_ and opt.nesterov and opt.momentum == 0.9
     assert opt.lr == 0.001 and paper.trainer.max_epochs == 40
@@ -91,14 +102,15 @@ def test_every_encoder_instantiates(tmp_path, encoder):
 
 
 @pytest.mark.parametrize("dataset", options("dataset"))
-def test_every_dataset_instantiates(tmp_path, dataset):
-    cfg = compose_cfg(tmp_path, [f"dataset={dataset}"])
+def test_every_dataset_instantiates(tmp_path, dataset, fixture_data):
+    cfg = compose_cfg(tmp_path, [f"dataset={dataset}"], data_dir=fixture_data)
     dm = instantiate(cfg.dataset)
     assert isinstance(dm, pl.LightningDataModule)
-    assert Path(dm.root).is_relative_to(tmp_path / "data")
-    if dataset == "symsol":  # nothing downloaded here: a clear message, no crash deeper down
-        with pytest.raises(FileNotFoundError, match="symsol_dataset.zip"):
-            dm.prepare_data()
+    assert Path(dm.root).is_relative_to(fixture_data)
+    if dataset != "symsol_rendered":  # nothing downloaded: a clear message naming the key, no crash deeper down
+        empty = compose_cfg(tmp_path, [f"dataset={dataset}"])
+        with pytest.raises(Exception, match=r"not found at .*Get it from .*point dataset.root at your copy"):
+            instantiate(empty.dataset)
 
 
 @pytest.mark.parametrize("trainer", options("trainer"))
@@ -160,14 +172,44 @@ def test_every_hparams_search_composes(tmp_path, search):
             compose_cfg(tmp_path, [f"hparams_search={search}", f"{key}={value}"])
 
 
+# what each experiment must reproduce (paper section 5 and appendix): dataset module, its key
+# settings, the backbone depth, the number of classes
+EXPECTED = {
+    "symsol1": ("SymsolDataModule", {"shapes": ["tet", "cube", "icosa", "cone", "cyl"], "num_views": None}, 50, 5),
+    "symsol1_10k": ("SymsolDataModule", {"shapes": ["tet", "cube", "icosa", "cone", "cyl"], "num_views": 10000}, 50, 5),
+    "symsol2_tetX": ("SymsolDataModule", {"shape": "tetX", "shapes": None}, 50, 1),
+    "symsol2_cylO": ("SymsolDataModule", {"shape": "cylO", "shapes": None}, 50, 1),
+    "symsol2_sphereX": ("SymsolDataModule", {"shape": "sphereX", "shapes": None}, 50, 1),
+    "modelnet10": ("ModelNet10DataModule", {"train_split": "train_100V", "test_split": "test_20V"}, 50, 10),
+    "modelnet10_limited": ("ModelNet10DataModule", {"train_split": "train_20V", "test_split": "test_20V"}, 50, 10),
+    "pascal3d": ("Pascal3DDataModule", {"synthetic_ratio": 3, "image_size": 224}, 101, 12),
+}
+
+
+def test_the_experiment_list_is_the_papers():
+    assert set(options("experiment")) == set(EXPECTED)
+
+
 @pytest.mark.parametrize("experiment", options("experiment"))
-def test_every_experiment_composes_and_instantiates(tmp_path, experiment):
-    cfg = compose_cfg(tmp_path, [f"experiment={experiment}"])
+def test_every_experiment_composes_and_instantiates(tmp_path, experiment, fixture_data):
+    cfg = compose_cfg(tmp_path, [f"experiment={experiment}"], data_dir=fixture_data)
+    module, settings, depth, n_classes = EXPECTED[experiment]
     assert cfg.task_name == experiment
-    assert cfg.dataset._target_ == "image2sphere.data.SymsolDataModule"
-    instantiate(cfg.dataset)
+    assert cfg.dataset._target_ == f"image2sphere.data.{module}"
+    for key, value in settings.items():
+        assert cfg.dataset[key] == value, key
+    # the paper's schedule: SGD with Nesterov momentum 0.9, lr 1e-3, x0.1 every 15 epochs, 40 epochs,
+    # batch 64, training grid level 3, evaluation grid level 5, lmax 6, no class-label input
+    opt, sched = cfg.model.optimizer, cfg.model.scheduler
+    assert (opt._target_, opt.lr, opt.momentum, opt.nesterov) == ("torch.optim.SGD", 0.001, 0.9, True)
+    assert (sched.step_size, sched.gamma, cfg.trainer.max_epochs) == (15, 0.1, 40)
+    assert (cfg.dataset.batch_size, cfg.dataset.image_size) == (64, 224)
+    assert (cfg.model.train_grid_level, cfg.model.eval_grid_level, cfg.lmax) == (3, 5, 6)
+    assert cfg.model.net.num_classes == 0 and cfg.model.net.n_subset == 20
+    dm = instantiate(cfg.dataset)
     net = instantiate(cfg.model.net)
-    assert net.encoder.depth == 50  # the paper's backbone for SYMSOL
+    assert net.encoder.depth == depth
+    assert len(dm.class_names) == n_classes
 
 
 def test_invalid_value_is_reported_with_its_key(tmp_path):

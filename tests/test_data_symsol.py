@@ -8,8 +8,15 @@ import torch
 from PIL import Image
 
 from conftest import haar_rotations
-from image2sphere.data.common import EpochShuffleSampler, normalize_images
-from image2sphere.data.symsol import SymsolDataModule, SymsolDataset, load_symsol_rotations
+from image2sphere.data.common import (
+    CorruptImageError,
+    DatasetNotFoundError,
+    EpochShuffleSampler,
+    collate_skipping_corrupt,
+    normalize_images,
+)
+from image2sphere.data.fixtures.symsol import write_symsol
+from image2sphere.data.symsol import SymsolDataModule, SymsolDataset, load_symsol_rotations, verify_symsol
 
 SIZE = 16
 
@@ -149,15 +156,64 @@ def test_datamodule_config_errors(symsol_root, tmp_path):
         SymsolDataModule(root=str(symsol_root), shapes=["cube", "dodecahedron"])
     with pytest.raises(ValueError, match="dataset.root is not set"):
         SymsolDataModule(root=None)
-    with pytest.raises(FileNotFoundError, match="no SYMSOL data at"):
-        SymsolDataModule(root=str(tmp_path / "missing")).prepare_data()
+    with pytest.raises(DatasetNotFoundError, match=r"SYMSOL not found at .*missing: expected .*symsol_dataset.zip"):
+        SymsolDataModule(root=str(tmp_path / "missing"))
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DatasetNotFoundError, match=r"missing: train/rotations.npz, test/rotations.npz"):
+        SymsolDataModule(root=str(tmp_path / "empty"))
+    with pytest.raises(ValueError, match=r"dataset.shape='cylO' and dataset.shapes=\['cube'\] disagree"):
+        SymsolDataModule(root=str(symsol_root), shapes=["cube"], shape="cylO")
+    with pytest.raises(ValueError, match="dataset.on_corrupt"):
+        SymsolDataModule(root=str(symsol_root), on_corrupt="ignore")
     dm = SymsolDataModule(root=str(symsol_root), shapes=["cube"], val_per_shape=10)
     with pytest.raises(ValueError, match="val_per_shape=10 leaves no training images"):
         dm.setup("fit")
-    (symsol_root / "train" / "images" / "cube_00004.png").write_bytes(b"not a png")
+    png = (symsol_root / "train" / "images" / "cube_00004.png").read_bytes()
+    (symsol_root / "train" / "images" / "cube_00004.png").write_bytes(png[: len(png) // 2])  # truncated
     ds = SymsolDataset(symsol_root, "train", ["cube"], image_size=SIZE)
-    with pytest.raises(ValueError, match="cube_00004.png"):
+    with pytest.raises(CorruptImageError, match="cube_00004.png"):
         ds[4]
+    skipping = SymsolDataset(symsol_root, "train", ["cube"], image_size=SIZE, on_corrupt="skip")
+    batch = collate_skipping_corrupt([skipping[i] for i in range(len(skipping))])
+    assert int(batch["skipped"]) == 1 and len(batch["image"]) == len(skipping) - 1
+    assert collate_skipping_corrupt([skipping[4]]) is None
     (symsol_root / "train" / "images" / "cube_00004.png").unlink()
     with pytest.raises(FileNotFoundError, match="cube_00004.png"):
         SymsolDataset(symsol_root, "train", ["cube"], image_size=SIZE)
+
+
+def test_published_layout_fixture_reads_back_every_shape(tmp_path):
+    """Dense (unmarked), object-array (tetX, sphereX) and NaN-padded (cylO) sets, read exactly."""
+    truth = write_symsol(tmp_path / "symsol", per_split={"train": 6, "test": 3})
+    rotations = load_symsol_rotations(tmp_path / "symsol" / "test", list(truth["test"]))
+    for shape, sets in truth["test"].items():
+        dense, counts = rotations[shape]
+        assert counts.tolist() == [len(s) for s in sets]
+        for i, s in enumerate(sets):
+            np.testing.assert_allclose(dense[i, : counts[i]], s, atol=1e-6)
+    assert {len(s) for s in truth["test"]["cube"]} == {24} and len(set(map(len, truth["train"]["tetX"]))) > 1
+    with np.load(tmp_path / "symsol" / "test" / "rotations.npz", allow_pickle=True) as archive:
+        assert archive["tetX"].dtype == object and archive["cylO"].dtype == np.float32
+
+    dm = SymsolDataModule(root=str(tmp_path / "symsol"), shape="cylO", shapes=None, num_views=4, val_per_shape=1,
+                          image_size=SIZE, batch_size=8)  # fmt: skip
+    dm.setup()
+    assert dm.class_names == ["cylO"] and len(dm.data_train) == 3 and len(dm.data_val) == 1
+    assert len(dm.data_test) == 3
+    batch = next(iter(dm.test_dataloader()))
+    assert batch["rotations"].shape[:2] == batch["mask"].shape and int(batch["skipped"]) == 0
+    assert batch["mask"].sum(1).tolist() == [len(s) for s in truth["test"]["cylO"]]
+
+
+def test_verify_counts_against_the_release_and_lists_unreadable_images(tmp_path):
+    root = tmp_path / "symsol"
+    write_symsol(root, shapes=("cube", "tetX"), per_split={"train": 4, "test": 2})
+    report = verify_symsol(root, progress=False)
+    assert ("train", "cube", 4, 45000) in report.counts and ("test", "tetX", 2, 5000) in report.counts
+    assert not report.ok and len(report.mismatches) == 4 and not report.unreadable
+    (root / "test" / "images" / "tetX_00001.png").write_bytes(b"\x89PNG broken")
+    (root / "train" / "images" / "cube_00003.png").unlink()
+    report = verify_symsol(root, progress=False)
+    assert report.unreadable == [str(root / "test" / "images" / "tetX_00001.png")]
+    assert report.problems == [f"missing image {root / 'train' / 'images' / 'cube_00003.png'}"]
+    assert "FAILED" in report.format()

@@ -7,6 +7,7 @@ small I2S on it; everything is written under pytest's tmp directories.
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -177,3 +178,51 @@ def test_run_killed_mid_epoch_resumes_from_its_last_epoch(tmp_path, data_dir):
     assert "Restored all states from the checkpoint" in proc.stdout + proc.stderr
     final = torch.load(resumed / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     assert final["global_step"] == saved["global_step"] + steps_per_epoch  # only the lost epoch was redone
+
+
+# ------------------------------------------------------------------ the paper's experiments on fixtures
+
+EXPERIMENTS = sorted(p.stem for p in (REPO / "conf" / "experiment").glob("*.yaml"))
+# smaller batches and evaluation grids than the paper's, so that a smoke run takes seconds
+SMOKE = [
+    "trainer.fast_dev_run=true",
+    "dataset.batch_size=4",
+    "dataset.num_workers=0",
+    "dataset.pin_memory=false",
+    "eval_grid_level=3",
+    "model.spread_grid_level=2",
+    "logger=none",
+]
+
+
+@pytest.fixture(scope="module")
+def published_fixtures(tmp_path_factory) -> Path:
+    from image2sphere.data.fixtures.__main__ import main
+
+    root = tmp_path_factory.mktemp("published") / "data"
+    assert main([str(root)]) == 0
+    return root
+
+
+def _run_experiment(experiment: str, data_dir: Path, log_dir: Path) -> dict:
+    cmd = [sys.executable, "-m", "src.train", f"experiment={experiment}", *SMOKE,
+           f"paths.data_dir={data_dir}", f"paths.log_dir={log_dir}"]  # fmt: skip
+    proc = subprocess.run(cmd, cwd=REPO, env=ENV, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, f"{' '.join(cmd)} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
+    (run_dir,) = (log_dir / experiment / "runs").iterdir()
+    return read_metrics(run_dir)
+
+
+def test_pascal3d_experiment_runs_on_published_layout_fixtures(tmp_path, published_fixtures):
+    metrics = _run_experiment("pascal3d", published_fixtures, tmp_path / "logs")
+    assert metrics["n_images"] == 4  # fast_dev_run: one test batch
+    assert 0 <= metrics["median_error_deg"] <= 180 and math.isfinite(metrics["log_likelihood"])
+    assert "skipped_images" not in metrics
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("experiment", [e for e in EXPERIMENTS if e != "pascal3d"])
+def test_every_experiment_runs_on_published_layout_fixtures(tmp_path, published_fixtures, experiment):
+    metrics = _run_experiment(experiment, published_fixtures, tmp_path / "logs")
+    assert 0 < metrics["n_images"] <= 4  # fast_dev_run: one test batch (a SYMSOL II fixture has 3 test images)
+    assert 0 <= metrics["median_error_deg"] <= 180 and math.isfinite(metrics["log_likelihood"])

@@ -1,11 +1,24 @@
 """Datasets: the SYMSOL renderer, dataset readers and LightningDataModules.
 
+Readers of the published layouts (SPEC section 4): :mod:`~image2sphere.data.symsol` (SYMSOL I/II),
+:mod:`~image2sphere.data.modelnet` (ModelNet10-SO(3), LMDB read directly),
+:mod:`~image2sphere.data.pascal3d` (PASCAL3D+ with RenderForCNN). ``python -m
+image2sphere.data.verify`` checks a download; :mod:`image2sphere.data.fixtures` writes tiny copies.
+
 The renderer lives in :mod:`image2sphere.data.render` (``render``, ``render_symsol``, and the
 command ``python -m image2sphere.data.render``); it is imported on first use so that running it as
 a module does not find it already imported.
 """
 
-from image2sphere.data.common import EpochShuffleSampler, load_image, normalize_images
+from image2sphere.data.common import (
+    CorruptImageError,
+    DatasetNotFoundError,
+    EpochShuffleSampler,
+    load_image,
+    normalize_images,
+)
+from image2sphere.data.modelnet import ModelNet10DataModule, ModelNet10Dataset
+from image2sphere.data.pascal3d import Pascal3DDataModule, Pascal3DDataset
 from image2sphere.data.shapes import (
     SHAPES,
     SYMSOL_I_SHAPES,
@@ -19,6 +32,12 @@ from image2sphere.data.symsol import SymsolDataModule, SymsolDataset, load_symso
 
 __all__ = [
     "SHAPES",
+    "CorruptImageError",
+    "DatasetNotFoundError",
+    "ModelNet10DataModule",
+    "ModelNet10Dataset",
+    "Pascal3DDataModule",
+    "Pascal3DDataset",
     "SYMSOL_II_SHAPES",
     "SYMSOL_I_SHAPES",
     "EpochShuffleSampler",

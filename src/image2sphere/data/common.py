@@ -1,4 +1,5 @@
-"""Pieces shared by the datasets: image loading and normalisation, seeded shuffling, collation.
+"""Pieces shared by the datasets: image loading and normalisation, seeded shuffling, collation,
+corrupt-image handling, missing-dataset messages and the report of the ``verify`` commands.
 
 Conventions
 -----------
@@ -6,27 +7,73 @@ Conventions
   standard deviation (what torchvision's ResNet weights expect).
 * Randomness in data loading is a function of ``(seed, epoch, index)`` only, never of a global
   random state, so a run resumed from a checkpoint sees the same batches as an uninterrupted one.
+* A corrupt image inside a dataset raises :class:`CorruptImageError` naming the file (or LMDB key),
+  or, with ``on_corrupt="skip"``, is logged, dropped from its batch by :func:`collate_skipping_corrupt`
+  and counted in the batch's ``skipped`` entry.
 """
 
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Iterator
+import io
+import logging
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 from PIL import Image, UnidentifiedImageError
-from torch.utils.data import Sampler
+from torch.utils.data import Sampler, default_collate
 
 __all__ = [
+    "CORRUPT_POLICIES",
     "IMAGENET_MEAN",
     "IMAGENET_STD",
+    "CorruptImageError",
+    "DatasetNotFoundError",
     "EpochShuffleSampler",
+    "VerifyReport",
+    "check_corrupt_policy",
+    "collate_skipping_corrupt",
+    "decode_image",
     "load_image",
+    "missing_dataset_error",
     "normalize_images",
     "stable_seed",
 ]
+
+log = logging.getLogger(__name__)
+
+CORRUPT_POLICIES = ("fail", "skip")
+
+
+class CorruptImageError(ValueError):
+    """An image file (or LMDB record) that cannot be decoded; ``source`` names it."""
+
+    def __init__(self, source: str, reason: str):
+        self.source = source
+        super().__init__(f"cannot decode image {source} ({reason}); the file is corrupt or truncated: re-download it")
+
+
+class DatasetNotFoundError(FileNotFoundError):
+    """A dataset is not where the configuration says (see :func:`missing_dataset_error`)."""
+
+
+def missing_dataset_error(name: str, looked_at: Path, expected: str, get_from: str, key: str) -> DatasetNotFoundError:
+    """The error for a dataset that is missing or incomplete: where we looked, what should be there,
+    where to get it and which config key points at it."""
+    return DatasetNotFoundError(
+        f"{name} not found at {looked_at}: expected {expected}. Get it from {get_from} and unpack it there, "
+        f"or point {key} at your copy"
+    )
+
+
+def check_corrupt_policy(value: str, key: str) -> str:
+    if value not in CORRUPT_POLICIES:
+        raise ValueError(f"{key} must be one of {CORRUPT_POLICIES}, got {value!r}")
+    return value
+
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -38,23 +85,87 @@ def stable_seed(*parts: object) -> int:
     return int.from_bytes(digest[:8], "little") >> 1
 
 
-def load_image(path: str | Path, image_size: int | None = None) -> torch.Tensor:
-    """An RGB image file as uint8 ``(H, W, 3)``, resized (bilinear, antialiased) to a square ``image_size``.
+def decode_image(source: str | Path | bytes, name: str | None = None) -> Image.Image:
+    """A fully decoded RGB :class:`PIL.Image.Image` from a file path or encoded bytes (grayscale and
+    palette images are converted to three equal channels).
 
-    Raises ``FileNotFoundError`` / ``ValueError`` naming the file when it is missing or unreadable.
+    Raises ``FileNotFoundError`` for a missing file and :class:`CorruptImageError` naming ``name``
+    (default: the path) for anything that does not decode completely, truncated files included.
     """
-    path = Path(path)
+    name = name or str(source)
     try:
-        with Image.open(path) as im:
-            im = im.convert("RGB")
-            if image_size is not None and im.size != (image_size, image_size):
-                im = im.resize((image_size, image_size), Image.Resampling.BILINEAR, reducing_gap=None)
-            array = np.asarray(im, dtype=np.uint8).copy()
+        with Image.open(io.BytesIO(source) if isinstance(source, bytes) else Path(source)) as im:
+            return im.convert("RGB")  # convert() loads every pixel, so truncation is detected here
     except FileNotFoundError:
-        raise FileNotFoundError(f"image file not found: {path}") from None
-    except (UnidentifiedImageError, OSError, SyntaxError) as e:
-        raise ValueError(f"cannot decode image {path} ({e}); the file is corrupt: re-download or re-render it") from e
-    return torch.from_numpy(array)
+        raise FileNotFoundError(f"image file not found: {name}") from None
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as e:
+        raise CorruptImageError(name, str(e)) from e
+
+
+def load_image(source: str | Path | bytes, image_size: int | None = None, name: str | None = None) -> torch.Tensor:
+    """An image (file path or encoded bytes) as uint8 RGB ``(H, W, 3)``, resized (bilinear,
+    antialiased) to a square ``image_size`` when given. Errors as :func:`decode_image`.
+    """
+    im = decode_image(source, name)
+    if image_size is not None and im.size != (image_size, image_size):
+        im = im.resize((image_size, image_size), Image.Resampling.BILINEAR, reducing_gap=None)
+    return torch.from_numpy(np.asarray(im, dtype=np.uint8).copy())
+
+
+def collate_skipping_corrupt(items: Sequence[dict | None]) -> dict | None:
+    """Collate dataset items, dropping the ``None`` of skipped corrupt images.
+
+    The batch gets ``skipped`` (int64 scalar): how many were dropped. ``None`` when all were.
+    """
+    kept = [item for item in items if item is not None]
+    if not kept:
+        return None
+    batch = default_collate(kept)
+    batch["skipped"] = torch.tensor(len(items) - len(kept))
+    return batch
+
+
+@dataclass
+class VerifyReport:
+    """What a dataset's ``verify`` found: counts per (split, class) against the expected ones,
+    files that do not decode, and other problems (missing files, bad labels)."""
+
+    dataset: str
+    root: Path
+    counts: list[tuple[str, str, int, int | None]] = field(default_factory=list)  # split, class, found, expected
+    unreadable: list[str] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    def count(self, split: str, name: str, found: int, expected: int | None = None) -> None:
+        self.counts.append((split, name, int(found), None if expected is None else int(expected)))
+
+    @property
+    def mismatches(self) -> list[tuple[str, str, int, int | None]]:
+        return [c for c in self.counts if c[3] is not None and c[2] != c[3]]
+
+    @property
+    def ok(self) -> bool:
+        return not (self.unreadable or self.problems or self.mismatches)
+
+    def format(self, max_listed: int = 20) -> str:
+        lines = [f"{self.dataset} at {self.root}"]
+        if self.counts:
+            width = max(len(f"{s}/{c}") for s, c, _, _ in self.counts)
+            lines.append(f"  {'split/class':<{width}} {'found':>8} {'expected':>9}")
+            for split, name, found, expected in self.counts:
+                flag = "" if expected is None or found == expected else "  <-- mismatch"
+                exp = "-" if expected is None else str(expected)
+                lines.append(f"  {f'{split}/{name}':<{width}} {found:>8} {exp:>9}{flag}")
+        for title, items in (("unreadable files", self.unreadable), ("problems", self.problems)):
+            if items:
+                lines.append(f"  {len(items)} {title}:")
+                lines += [f"    {item}" for item in items[:max_listed]]
+                if len(items) > max_listed:
+                    lines.append(f"    ... and {len(items) - max_listed} more")
+        lines += [f"  note: {n}" for n in self.notes]
+        lines.append("  OK" if self.ok else "  FAILED")
+        return "\n".join(lines)
 
 
 def normalize_images(images: torch.Tensor) -> torch.Tensor:

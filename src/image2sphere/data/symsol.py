@@ -29,20 +29,37 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
-from image2sphere.data.common import EpochShuffleSampler, load_image, normalize_images, stable_seed
-from image2sphere.data.shapes import SYMSOL_I_SHAPES, check_shape_list
+from image2sphere.data.common import (
+    CorruptImageError,
+    EpochShuffleSampler,
+    VerifyReport,
+    check_corrupt_policy,
+    collate_skipping_corrupt,
+    load_image,
+    missing_dataset_error,
+    normalize_images,
+    stable_seed,
+)
+from image2sphere.data.shapes import SHAPES, SYMSOL_I_SHAPES, check_shape_list
 
 __all__ = [
     "LABEL_MODES",
     "SymsolDataModule",
     "SymsolDataset",
     "load_symsol_rotations",
+    "verify_symsol",
 ]
 
 log = logging.getLogger(__name__)
 
 LABEL_MODES = ("random", "first")
 ORTHONORMAL_ATOL = 1e-3
+SYMSOL_URL = (
+    "https://storage.googleapis.com/gresearch/implicit-pdf/symsol_dataset.zip "
+    "(linked from github.com/google-research/google-research/tree/master/implicit_pdf)"
+)
+# images per shape in the public release (SPEC section 4)
+EXPECTED_PER_SHAPE = {"train": 45000, "test": 5000}
 
 
 def _shape_tuple(shapes: Sequence[str] | str, key: str) -> tuple[str, ...]:
@@ -131,6 +148,8 @@ class SymsolDataset(Dataset):
         image_size: images are resized to this square size when they differ.
         cache_images: decode every image once, up front, and keep them in memory (uint8).
         seed: seed of the label choice.
+        on_corrupt: ``"fail"`` (raise, naming the file) or ``"skip"`` (log it; the item is ``None``
+            and :func:`image2sphere.data.common.collate_skipping_corrupt` drops and counts it).
     """
 
     def __init__(
@@ -145,6 +164,7 @@ class SymsolDataset(Dataset):
         cache_images: bool = False,
         seed: int = 0,
         rotations: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
+        on_corrupt: str = "fail",
     ):
         if label not in LABEL_MODES:
             raise ValueError(f"label must be one of {LABEL_MODES}, got {label!r}")
@@ -155,7 +175,9 @@ class SymsolDataset(Dataset):
         self.return_all = return_all
         self.image_size = int(image_size)
         self.seed = int(seed)
+        self.on_corrupt = check_corrupt_policy(on_corrupt, "dataset.on_corrupt")
         self.epoch = 0
+        self._warned: set[str] = set()
         split_dir = self.root / split
         rotations = rotations if rotations is not None else load_symsol_rotations(split_dir, self.shapes)
         self.items: list[tuple[int, int]] = []  # (class_index, row)
@@ -177,6 +199,8 @@ class SymsolDataset(Dataset):
                 f"{len(missing)} image(s) listed in {split_dir / 'rotations.npz'} are missing, e.g. {missing[0]}"
             )
         if cache_images:
+            if self.on_corrupt == "skip":
+                raise ValueError("dataset.cache_images needs dataset.on_corrupt=fail (a cache cannot skip images)")
             self._cache = torch.stack([self._read(i) for i in range(len(self.items))])
 
     def image_path(self, i: int) -> Path:
@@ -192,9 +216,17 @@ class SymsolDataset(Dataset):
     def __len__(self) -> int:
         return len(self.items)
 
-    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor] | None:
         c, row = self.items[i]
-        image = self._cache[i] if self._cache is not None else self._read(i)
+        try:
+            image = self._cache[i] if self._cache is not None else self._read(i)
+        except CorruptImageError as e:
+            if self.on_corrupt == "fail":
+                raise
+            if e.source not in self._warned:
+                self._warned.add(e.source)
+                log.warning("skipping corrupt image %s (dataset.on_corrupt=skip)", e.source)
+            return None
         item = {
             "image": normalize_images(image),
             "class_index": torch.tensor(c),
@@ -221,8 +253,10 @@ class SymsolDataModule(pl.LightningDataModule):
     Args:
         root: the dataset root. ``None`` with ``render`` set: a cache directory under
             ``render_dir`` named after the render parameters.
-        shapes: which shapes (SYMSOL I: tet cube icosa cone cyl; SYMSOL II: one of tetX cylO sphereX).
-        train_per_shape: use only the first this many training images of each shape (``None``: all),
+        shapes: which shapes, one model for all (SYMSOL I: tet cube icosa cone cyl).
+        shape: a single shape instead of ``shapes`` (SYMSOL II trains one model per marked shape:
+            ``dataset.shape=cylO``).
+        num_views: use only the first this many training images of each shape (``None``: all),
             e.g. 10000 for the paper's low-data SYMSOL experiment. The validation images are
             carved from these.
         val_per_shape: training images per shape held out (chosen with ``seed``) for validation.
@@ -236,13 +270,15 @@ class SymsolDataModule(pl.LightningDataModule):
             (``train``, ``test`` image counts per shape, ``image_size``, ``seed``, ...): the set is
             rendered once into ``root`` by :meth:`prepare_data` and reused afterwards.
         render_dir: where rendered sets are cached when ``root`` is ``None``.
+        on_corrupt: ``"fail"`` or ``"skip"`` for images that do not decode.
     """
 
     def __init__(
         self,
         root: str | None = None,
-        shapes: Sequence[str] = SYMSOL_I_SHAPES,
-        train_per_shape: int | None = None,
+        shapes: Sequence[str] | None = SYMSOL_I_SHAPES,
+        shape: str | None = None,
+        num_views: int | None = None,
         val_per_shape: int = 0,
         test_per_shape: int | None = None,
         label: str = "random",
@@ -254,12 +290,23 @@ class SymsolDataModule(pl.LightningDataModule):
         seed: int = 0,
         render: dict | None = None,
         render_dir: str | None = None,
+        on_corrupt: str = "fail",
     ):
         super().__init__()
-        self.shapes = _shape_tuple(shapes, "dataset.shapes")
+        if shape is not None:
+            if shapes is not None and list(_shape_tuple(shapes, "dataset.shapes")) != [shape]:
+                raise ValueError(
+                    f"dataset.shape={shape!r} and dataset.shapes={list(shapes)} disagree: set one of them "
+                    "(dataset.shapes=null with dataset.shape)"
+                )
+            shapes = [shape]
+        if shapes is None:
+            raise ValueError("set dataset.shapes (a list) or dataset.shape (one shape)")
+        self.shapes = _shape_tuple(shapes, "dataset.shapes" if shape is None else "dataset.shape")
+        self.on_corrupt = check_corrupt_policy(on_corrupt, "dataset.on_corrupt")
         if label not in LABEL_MODES:
             raise ValueError(f"dataset.label must be one of {LABEL_MODES}, got {label!r}")
-        for key, value in (("train_per_shape", train_per_shape), ("test_per_shape", test_per_shape)):
+        for key, value in (("num_views", num_views), ("test_per_shape", test_per_shape)):
             if value is not None and (not isinstance(value, int) or value < 1):
                 raise ValueError(f"dataset.{key} must be a positive integer or null, got {value!r}")
         if not isinstance(val_per_shape, int) or val_per_shape < 0:
@@ -275,7 +322,9 @@ class SymsolDataModule(pl.LightningDataModule):
                 )
             root = str(Path(render_dir) / self._render_tag())
         self.root = Path(root)
-        self.train_per_shape = train_per_shape
+        if self.render is None:
+            self._check_present()
+        self.num_views = num_views
         self.val_per_shape = val_per_shape
         self.test_per_shape = test_per_shape
         self.label = label
@@ -293,13 +342,23 @@ class SymsolDataModule(pl.LightningDataModule):
         shapes = "-".join(r.get("shapes", self.shapes))
         return f"{shapes}_{r.get('image_size', 224)}px_train{r['train']}_test{r['test']}_seed{r.get('seed', 0)}"
 
+    def _check_present(self) -> None:
+        needed = [self.root / split / "rotations.npz" for split in ("train", "test")]
+        needed += [self.root / split / "images" for split in ("train", "test")]
+        if not all(p.exists() for p in needed):
+            missing = [str(p.relative_to(self.root)) for p in needed if not p.exists()] if self.root.is_dir() else []
+            raise missing_dataset_error(
+                "SYMSOL",
+                self.root,
+                "the unzipped symsol_dataset.zip: train/ and test/, each with images/{shape}_{i:05d}.png and "
+                "rotations.npz" + (f" (missing: {', '.join(missing)})" if missing else ""),
+                SYMSOL_URL,
+                "dataset.root",
+            )
+
     def prepare_data(self) -> None:
         if self.render is None:
-            if not (self.root / "train").is_dir() and not (self.root / "test").is_dir():
-                raise FileNotFoundError(
-                    f"no SYMSOL data at {self.root} (expected {self.root}/train and {self.root}/test): "
-                    "download symsol_dataset.zip and unzip it there, or set dataset.root"
-                )
+            self._check_present()
             return
         from image2sphere.data.render import render_symsol
 
@@ -315,10 +374,12 @@ class SymsolDataModule(pl.LightningDataModule):
         return {s: np.arange(min(len(rotations[s][0]), limit or len(rotations[s][0]))) for s in self.shapes}
 
     def setup(self, stage: str | None = None) -> None:
-        common = dict(root=self.root, shapes=self.shapes, image_size=self.image_size, seed=self.seed)
+        common = dict(
+            root=self.root, shapes=self.shapes, image_size=self.image_size, seed=self.seed, on_corrupt=self.on_corrupt
+        )
         if stage in (None, "fit", "validate") and self.data_train is None:
             rotations = load_symsol_rotations(self.root / "train", self.shapes)
-            rows = self._rows(rotations, self.train_per_shape)
+            rows = self._rows(rotations, self.num_views)
             train_rows, val_rows = {}, {}
             for s, r in rows.items():
                 if self.val_per_shape >= len(r):
@@ -356,6 +417,7 @@ class SymsolDataModule(pl.LightningDataModule):
             num_workers=self.num_workers,
             pin_memory=self.pin_memory,
             persistent_workers=False,
+            collate_fn=collate_skipping_corrupt,
         )
 
     def train_dataloader(self) -> DataLoader:
@@ -366,3 +428,41 @@ class SymsolDataModule(pl.LightningDataModule):
 
     def test_dataloader(self) -> DataLoader:
         return self._loader(self.data_test, train=False)
+
+
+def verify_symsol(
+    root: str | Path, shapes: Sequence[str] | None = None, decode: bool = True, progress: bool = True
+) -> VerifyReport:
+    """Check a SYMSOL download: per split and shape, images in ``rotations.npz`` against the public
+    release's counts (45,000 train and 5,000 test), every listed image present (and decodable when
+    ``decode``), every rendering rotation a rotation matrix."""
+    from tqdm import tqdm
+
+    root = Path(root)
+    report = VerifyReport("SYMSOL", root)
+    for split in ("train", "test"):
+        path = root / split / "rotations.npz"
+        if not path.is_file():
+            report.problems.append(f"missing {path}")
+            continue
+        with np.load(path, allow_pickle=True) as archive:
+            present = [k for k in archive.files if k in SHAPES]
+        for shape in shapes or present:
+            try:
+                _, counts = load_symsol_rotations(root / split, [shape])[shape]
+            except ValueError as e:
+                report.problems.append(str(e))
+                continue
+            report.count(split, shape, len(counts), EXPECTED_PER_SHAPE[split])
+            images = [root / split / "images" / f"{shape}_{i:05d}.png" for i in range(len(counts))]
+            missing = [p for p in images if not p.is_file()]
+            report.problems += [f"missing image {p}" for p in missing]
+            if decode:
+                for p in tqdm(images, desc=f"decoding {split}/{shape}", disable=not progress):
+                    if p.is_file():
+                        try:
+                            load_image(p)
+                        except CorruptImageError:
+                            report.unreadable.append(str(p))
+    report.notes.append("the paper mentions 50k training renderings per shape; the public release has 45k + 5k test")
+    return report

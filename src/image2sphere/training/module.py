@@ -9,7 +9,10 @@ Conventions
   nearest the label, ``logsumexp_i f(R_i) - f(R_label)``, evaluated with the fast grid evaluator
   (no ``(B, N)`` tensor).
 * Batches are dicts (:mod:`image2sphere.data`): ``image``, ``class_index``, and either
-  ``rotation (B, 3, 3)`` (training) or ``rotations (B, M, 3, 3)`` with ``mask (B, M)`` (evaluation).
+  ``rotation (B, 3, 3)`` (training) or ``rotations (B, M, 3, 3)`` with ``mask (B, M)`` (evaluation),
+  optionally ``skipped``: corrupt images dropped from the batch (``dataset.on_corrupt=skip``). They are
+  counted (``<stage>/skipped_images``, and ``skipped_images`` in the test metrics); a batch whose images
+  were all skipped is ``None`` and is passed over.
 * Metrics follow SPEC section 3 (:mod:`image2sphere.metrics`): validation at ``val_grid_level``,
   test at ``eval_grid_level`` (spread at ``spread_grid_level``). The final test metrics are kept in
   :attr:`test_metrics` and logged as ``test/<metric>[/<class>]``.
@@ -98,6 +101,7 @@ class PoseEstimationModule(pl.LightningModule):
         self.lmax = net.lmax
         self.class_names = list(class_names) if class_names is not None else None
         self.test_metrics: dict[str, float] = {}
+        self.skipped_images: dict[str, int] = {}
         self._records: dict[str, list[torch.Tensor]] = {}
         self._seed_base = torch.initial_seed()
         self.run_config: dict | None = None  # the resolved Hydra config, stored in checkpoints
@@ -117,8 +121,21 @@ class PoseEstimationModule(pl.LightningModule):
         index = so3_healpix_nearest_index(rotation.detach(), level).to(coeffs.device)  # [B]
         return ev.logsumexp(coeffs) - ev.logits_at(coeffs, index[:, None])[:, 0]
 
+    def _count_skipped(self, batch: dict | None, stage: str) -> bool:
+        """Count the corrupt images left out of ``batch``; False when nothing is left of it."""
+        if batch is None:
+            # all images of the batch were skipped; their number is unknown here, count at least one
+            self.skipped_images[stage] = self.skipped_images.get(stage, 0) + 1
+            return False
+        skipped = int(batch.get("skipped", 0))
+        if skipped:
+            self.skipped_images[stage] = self.skipped_images.get(stage, 0) + skipped
+        return True
+
     # ------------------------------------------------------------------ training
-    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
+    def training_step(self, batch: dict | None, batch_idx: int) -> torch.Tensor | None:
+        if not self._count_skipped(batch, "train"):
+            return None
         coeffs = self(batch["image"], batch.get("class_index"))
         loss = self._nll(coeffs, batch["rotation"], self.hparams.train_grid_level).mean()
         if not torch.isfinite(loss):
@@ -191,8 +208,13 @@ class PoseEstimationModule(pl.LightningModule):
         first = torch.from_numpy(np.sort(first))
         return {k: v[first] for k, v in merged.items()}
 
-    def validation_step(self, batch: dict, batch_idx: int) -> None:
-        self._record(self._evaluate(batch, self.hparams.val_grid_level, None))
+    def on_train_epoch_end(self) -> None:
+        if self.skipped_images.get("train"):
+            self.log("train/skipped_images", float(self.skipped_images["train"]))
+
+    def validation_step(self, batch: dict | None, batch_idx: int) -> None:
+        if self._count_skipped(batch, "val"):
+            self._record(self._evaluate(batch, self.hparams.val_grid_level, None))
 
     def on_validation_epoch_end(self) -> None:
         if not self._records:
@@ -209,11 +231,18 @@ class PoseEstimationModule(pl.LightningModule):
             sync_dist=False,
         )
 
-    def test_step(self, batch: dict, batch_idx: int) -> None:
-        self._record(self._evaluate(batch, self.hparams.eval_grid_level, self.hparams.spread_grid_level))
+    def test_step(self, batch: dict | None, batch_idx: int) -> None:
+        if self._count_skipped(batch, "test"):
+            self._record(self._evaluate(batch, self.hparams.eval_grid_level, self.hparams.spread_grid_level))
+
+    def on_test_epoch_start(self) -> None:
+        self.skipped_images.pop("test", None)
 
     def on_test_epoch_end(self) -> None:
         self.test_metrics = self._summarize()
+        if self.skipped_images.get("test"):
+            # the metrics do not cover every test image: say so next to them
+            self.test_metrics["skipped_images"] = float(self.skipped_images["test"])
         self.log_dict({f"test/{k}": v for k, v in self.test_metrics.items()}, sync_dist=False)
 
     # ------------------------------------------------------------------ optimisation

@@ -1,0 +1,781 @@
+"""PASCAL3D+ (release 1.1) with RenderForCNN synthetic images, in their published layouts.
+
+Layout (SPEC section 4)
+-----------------------
+``root`` (the unpacked ``PASCAL3D+_release1.1``)::
+
+    Images/{cls}_pascal/{id}.jpg           Images/{cls}_imagenet/{id}.JPEG
+    Annotations/{cls}_{pascal|imagenet}/{id}.mat      (record.objects[k])
+    Image_sets/{cls}_imagenet_{train|val}.txt         (one id per line)
+    PASCAL/VOCdevkit/VOC2012/ImageSets/Main/{cls}_{train|val}.txt   ("id label" per line)
+
+``synthetic_root`` (RenderForCNN, e.g. ``syn_images_cropped_bkg_overlaid``)::
+
+    {synset}/{md5}/{synset}_{md5}_a{az:03d}_e{el:03d}_t{tilt:03d}_d{dist:03d}.png
+
+Protocol
+--------
+* Train = PASCAL VOC train + ImageNet train + ImageNet val; test = PASCAL VOC val. A VOC list
+  names every VOC image with a label; those whose image exists in ``Images/{cls}_pascal`` are used.
+* Objects are dropped when occluded, truncated or difficult, without a viewpoint (or without a
+  distance, or distance 0), or with a degenerate box. ``objects="first"`` considers only the first
+  object of each annotation file (what the I2S and Mohlin et al. code read; its class is its own
+  ``class`` field); ``objects="all"`` every object of the folder's category.
+* Rotation (GL camera frame: ``x`` right, ``y`` up, ``z`` toward the viewer; ``x_camera = R @
+  x_object``) from azimuth ``a``, elevation ``e`` and in-plane ``theta`` (degrees in the files):
+  ``R = Rz(theta) @ Rx(e - pi/2) @ Rz(-a)`` (:func:`pascal3d_rotation`). This is the camera of the
+  PASCAL3D+ annotation tool: an object point ``X`` projects to the pixel
+  ``(px, py) + focal * viewport * (x_cv / z_cv, y_cv / z_cv)`` (1-based) with
+  ``x_cv = diag(1, -1, -1) @ R @ (X - C)`` and ``C`` the camera centre at ``distance``.
+* RenderForCNN files store the tilt with the opposite sign: ``R = pascal3d_rotation(a, e, -tilt)``.
+* Every image (train and test) is the box warped to ``image_size`` by turning a virtual camera
+  toward the box centre (:func:`image2sphere.data.augment.box_to_virtual_camera`); the label is
+  turned with it, so it stays exact. Training augmentation: horizontal flip (label ``F R F``, the
+  categories being left-right symmetric about their ``x = 0`` plane), box edges jittered by up to
+  ``box_jitter`` of the box size and a random roll of the virtual camera (``roll_std_deg``): the
+  "slight random perspective change". Synthetic images use the whole image as the box and a long
+  focal length (``synthetic_focal``), as their intrinsics are not published.
+* Training mixes ``synthetic_ratio`` synthetic images per real image (3 in the paper): an epoch is
+  every real image once plus ``round(synthetic_ratio * n_real)`` synthetic ones drawn at random.
+* Randomness (flip, jitter, roll, synthetic draws) is a function of ``(seed, epoch, index)``.
+
+Items: as :mod:`image2sphere.data.symsol`: ``image``, ``class_index``, ``index`` and ``rotation``
+(training) or ``rotations (1, 3, 3)`` with ``mask (1,)`` (evaluation).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import lightning.pytorch as pl
+import numpy as np
+import torch
+from PIL import ImageOps
+from torch.utils.data import DataLoader, Dataset
+
+from image2sphere.data.augment import GL_TO_CV, box_to_virtual_camera, hflip_box, hflip_rotation, warp_image
+from image2sphere.data.common import (
+    CorruptImageError,
+    EpochShuffleSampler,
+    VerifyReport,
+    check_corrupt_policy,
+    collate_skipping_corrupt,
+    decode_image,
+    missing_dataset_error,
+    normalize_images,
+    stable_seed,
+)
+
+__all__ = [
+    "OBJECT_MODES",
+    "PASCAL3D_CLASSES",
+    "RENDERFORCNN_SYNSETS",
+    "Pascal3DDataModule",
+    "Pascal3DDataset",
+    "Pascal3DObject",
+    "SyntheticView",
+    "check_classes",
+    "drop_reason",
+    "list_pascal3d_objects",
+    "list_renderforcnn",
+    "parse_renderforcnn_name",
+    "pascal3d_rotation",
+    "read_pascal3d_annotation",
+    "renderforcnn_rotation",
+    "verify_pascal3d",
+]
+
+log = logging.getLogger(__name__)
+
+PASCAL3D_CLASSES = (
+    "aeroplane", "bicycle", "boat", "bottle", "bus", "car",
+    "chair", "diningtable", "motorbike", "sofa", "train", "tvmonitor",
+)  # fmt: skip
+# ShapeNet synsets of the 12 categories: RenderForCNN's folder names
+RENDERFORCNN_SYNSETS = {
+    "aeroplane": "02691156", "bicycle": "02834778", "boat": "02858304", "bottle": "02876657",
+    "bus": "02924116", "car": "02958343", "chair": "03001627", "diningtable": "04379243",
+    "motorbike": "03790512", "sofa": "04256520", "train": "04468005", "tvmonitor": "03211117",
+}  # fmt: skip
+OBJECT_MODES = ("first", "all")
+PASCAL3D_URL = "https://cvgl.stanford.edu/projects/pascal3d.html (PASCAL3D+_release1.1.zip)"
+RENDERFORCNN_URL = (
+    "https://github.com/ShapeNet/RenderForCNN (syn_images_cropped_bkg_overlaid.tar; needs a free ImageNet account)"
+)
+_SYNTHETIC_NAME = re.compile(r"^(\d{8})_([0-9a-f]+)_a(-?\d+)_e(-?\d+)_t(-?\d+)_d(-?\d+)\.png$")
+_VOC_LISTS = Path("PASCAL", "VOCdevkit", "VOC2012", "ImageSets", "Main")
+DEFAULT_AUGMENT = {"flip": True, "box_jitter": 0.1, "roll_std_deg": 7.6}
+
+
+# --------------------------------------------------------------------------------------------------
+# Rotations
+# --------------------------------------------------------------------------------------------------
+
+
+def _rz(t: np.ndarray) -> np.ndarray:
+    c, s, z, o = np.cos(t), np.sin(t), np.zeros_like(t), np.ones_like(t)
+    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
+
+
+def _rx(t: np.ndarray) -> np.ndarray:
+    c, s, z, o = np.cos(t), np.sin(t), np.zeros_like(t), np.ones_like(t)
+    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1), np.stack([z, s, c], -1)], -2)
+
+
+def pascal3d_rotation(azimuth, elevation, theta) -> np.ndarray:
+    """``Rz(theta) @ Rx(elevation - pi/2) @ Rz(-azimuth)`` ``(..., 3, 3)`` from angles in degrees (GL frame)."""
+    a, e, t = np.broadcast_arrays(*(np.radians(np.asarray(v, dtype=np.float64)) for v in (azimuth, elevation, theta)))
+    if not (np.isfinite(a).all() and np.isfinite(e).all() and np.isfinite(t).all()):
+        raise ValueError("azimuth, elevation and theta must be finite")
+    return _rz(t) @ _rx(e - np.pi / 2) @ _rz(-a)
+
+
+def renderforcnn_rotation(azimuth, elevation, tilt) -> np.ndarray:
+    """The rotation of a RenderForCNN image from its file-name angles (degrees): the tilt is negated."""
+    return pascal3d_rotation(azimuth, elevation, -np.asarray(tilt, dtype=np.float64))
+
+
+# --------------------------------------------------------------------------------------------------
+# Annotations and listing
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Pascal3DObject:
+    """One annotated object: where it is and its pose. ``box`` is ``(x1, y1, x2, y2)`` and
+    ``principal_point`` ``(px, py)``, both as written in the annotation (1-based, MATLAB)."""
+
+    image: Path
+    annotation: Path
+    object_index: int
+    class_index: int
+    box: tuple[float, float, float, float]
+    azimuth: float
+    elevation: float
+    theta: float
+    focal_px: float  # focal * viewport
+    principal_point: tuple[float, float]
+
+    @property
+    def rotation(self) -> np.ndarray:
+        return pascal3d_rotation(self.azimuth, self.elevation, self.theta)
+
+    def intrinsics(self) -> np.ndarray:
+        """``K`` in continuous pixel coordinates (MATLAB coordinate ``p`` is ``p - 0.5``)."""
+        px, py = self.principal_point
+        f = self.focal_px
+        return np.array([[f, 0.0, px - 0.5], [0.0, f, py - 0.5], [0.0, 0.0, 1.0]])
+
+
+def _scalar(value) -> float | None:
+    a = np.asarray(value).reshape(-1)
+    if a.size == 0:
+        return None
+    try:
+        return float(a[0])
+    except (TypeError, ValueError):
+        return None
+
+
+def _as_list(value) -> list:
+    if isinstance(value, np.ndarray):
+        return list(value.reshape(-1))
+    return [value]
+
+
+def read_pascal3d_annotation(path: str | Path) -> list[dict]:
+    """The objects of one annotation ``.mat`` file as plain dicts.
+
+    Keys: ``class`` (str), ``bbox`` (4 floats or None), ``truncated``, ``occluded``, ``difficult``
+    (bools) and ``viewpoint``: None when absent, else a dict of the numeric fields present
+    (``azimuth``, ``elevation``, ``theta``, ``distance``, ``px``, ``py``, ``focal``, ``viewport``).
+    Raises ``ValueError`` naming the file when it is not a PASCAL3D+ annotation.
+    """
+    from scipy.io import loadmat
+
+    path = Path(path)
+    try:
+        mat = loadmat(path, squeeze_me=True, struct_as_record=False)
+        objects = _as_list(mat["record"].objects)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"annotation file not found: {path}") from None
+    except Exception as e:  # scipy raises several types for damaged files
+        raise ValueError(f"cannot read PASCAL3D+ annotation {path} ({type(e).__name__}: {e})") from e
+    out = []
+    for obj in objects:
+        fields = set(getattr(obj, "_fieldnames", []))
+        vp = getattr(obj, "viewpoint", None)
+        viewpoint = None
+        if vp is not None and hasattr(vp, "_fieldnames"):
+            viewpoint = {k: _scalar(getattr(vp, k)) for k in vp._fieldnames}
+            viewpoint = {k: v for k, v in viewpoint.items() if v is not None}
+        bbox = np.asarray(getattr(obj, "bbox", []), dtype=np.float64).reshape(-1) if "bbox" in fields else None
+        out.append(
+            {
+                "class": str(getattr(obj, "class", "")),
+                "bbox": tuple(bbox.tolist()) if bbox is not None and bbox.size == 4 else None,
+                "truncated": bool(_scalar(getattr(obj, "truncated", 0)) or 0),
+                "occluded": bool(_scalar(getattr(obj, "occluded", 0)) or 0),
+                "difficult": bool(_scalar(getattr(obj, "difficult", 0)) or 0),
+                "viewpoint": viewpoint,
+            }
+        )
+    return out
+
+
+_VIEW_KEYS = ("azimuth", "elevation", "theta", "distance", "px", "py", "focal", "viewport")
+
+
+def drop_reason(obj: dict) -> str | None:
+    """Why an annotated object is left out of the protocol, or ``None`` when it is kept."""
+    for flag in ("occluded", "truncated", "difficult"):
+        if obj[flag]:
+            return flag
+    vp = obj["viewpoint"]
+    if vp is None or any(k not in vp for k in _VIEW_KEYS if k != "distance"):
+        return "no viewpoint"
+    if not vp.get("distance"):
+        return "distance 0"
+    if obj["bbox"] is None:
+        return "degenerate box"
+    x1, y1, x2, y2 = obj["bbox"]
+    if not (np.isfinite(obj["bbox"]).all() and x1 < x2 and y1 < y2):
+        return "degenerate box"
+    return None
+
+
+def check_classes(classes: Sequence[str] | str, key: str = "dataset.classes") -> tuple[str, ...]:
+    """Validated category names (a subset of :data:`PASCAL3D_CLASSES`, no repeats)."""
+    classes = (classes,) if isinstance(classes, str) else tuple(classes)
+    unknown = [c for c in classes if c not in PASCAL3D_CLASSES]
+    if unknown or not classes or len(set(classes)) != len(classes):
+        raise ValueError(f"{key} must be distinct names among {PASCAL3D_CLASSES}, got {list(classes)}")
+    return classes
+
+
+def _split_sources(root: Path, cls: str, split: str) -> list[tuple[str, Path]]:
+    """``(source, list file)`` of one class and split: VOC train / ImageNet train+val, or VOC val."""
+    voc = root / _VOC_LISTS
+    if split == "train":
+        return [
+            ("pascal", voc / f"{cls}_train.txt"),
+            ("imagenet", root / "Image_sets" / f"{cls}_imagenet_train.txt"),
+            ("imagenet", root / "Image_sets" / f"{cls}_imagenet_val.txt"),
+        ]
+    if split == "test":
+        return [("pascal", voc / f"{cls}_val.txt")]
+    raise ValueError(f"split must be 'train' or 'test', got {split!r}")
+
+
+def _read_ids(path: Path) -> list[str]:
+    if not path.is_file():
+        raise FileNotFoundError(f"PASCAL3D+ image list not found: {path}")
+    ids = []
+    for line in path.read_text().splitlines():
+        parts = line.split()
+        if parts:
+            ids.append(parts[0])
+    return ids
+
+
+def list_split_images(root: str | Path, cls: str, split: str) -> list[tuple[Path, Path, bool]]:
+    """``(image, annotation, listed_must_exist)`` for one class and split, in list order.
+
+    VOC lists name every VOC image, so only the ones present in ``Images/{cls}_pascal`` are
+    returned (``False``); every id of an ImageNet list must exist (``True``).
+    """
+    root = Path(root)
+    out = []
+    for source, list_file in _split_sources(root, cls, split):
+        folder = f"{cls}_{source}"
+        suffix = ".jpg" if source == "pascal" else ".JPEG"
+        for i in _read_ids(list_file):
+            image = root / "Images" / folder / f"{i}{suffix}"
+            if source == "pascal" and not image.is_file():
+                continue
+            out.append((image, root / "Annotations" / folder / f"{i}.mat", source == "imagenet"))
+    return out
+
+
+def list_pascal3d_objects(
+    root: str | Path, split: str, objects: str = "first", classes: Sequence[str] = PASCAL3D_CLASSES
+) -> tuple[list[Pascal3DObject], dict[str, int]]:
+    """The objects of a split that the protocol keeps, and how many were dropped for each reason.
+
+    ``class_index`` is the position in ``classes``. Raises ``FileNotFoundError`` naming the first
+    missing image or annotation file.
+    """
+    if objects not in OBJECT_MODES:
+        raise ValueError(f"dataset.objects must be one of {OBJECT_MODES}, got {objects!r}")
+    classes = check_classes(classes)
+    kept: list[Pascal3DObject] = []
+    dropped: dict[str, int] = {}
+    for cls in classes:
+        for image, annotation, _ in list_split_images(root, cls, split):
+            if not image.is_file():
+                raise FileNotFoundError(f"image listed for PASCAL3D+ {split} is missing: {image}")
+            candidates = list(enumerate(read_pascal3d_annotation(annotation)))
+            if objects == "first":
+                candidates = candidates[:1]
+            else:
+                candidates = [(k, o) for k, o in candidates if o["class"] == cls]
+            for k, obj in candidates:
+                reason = drop_reason(obj)
+                if reason is None and obj["class"] not in classes:
+                    reason = "class not selected"
+                if reason is not None:
+                    dropped[reason] = dropped.get(reason, 0) + 1
+                    continue
+                vp = obj["viewpoint"]
+                kept.append(
+                    Pascal3DObject(
+                        image=image,
+                        annotation=annotation,
+                        object_index=k,
+                        class_index=classes.index(obj["class"]),
+                        box=obj["bbox"],
+                        azimuth=vp["azimuth"],
+                        elevation=vp["elevation"],
+                        theta=vp["theta"],
+                        focal_px=vp["focal"] * vp["viewport"],
+                        principal_point=(vp["px"], vp["py"]),
+                    )
+                )
+    return kept, dropped
+
+
+@dataclass(frozen=True)
+class SyntheticView:
+    """One RenderForCNN image and the angles in its file name (degrees; ``tilt`` as stored)."""
+
+    path: Path
+    class_index: int
+    azimuth: float
+    elevation: float
+    tilt: float
+
+    @property
+    def rotation(self) -> np.ndarray:
+        return renderforcnn_rotation(self.azimuth, self.elevation, self.tilt)
+
+
+def parse_renderforcnn_name(name: str) -> tuple[str, int, int, int, int]:
+    """``(synset, azimuth, elevation, tilt, distance)`` from a RenderForCNN file name."""
+    m = _SYNTHETIC_NAME.match(name)
+    if m is None:
+        raise ValueError(
+            f"{name!r} is not a RenderForCNN image name ({{synset}}_{{md5}}_a{{az}}_e{{el}}_t{{tilt}}_d{{dist}}.png)"
+        )
+    synset, _, a, e, t, d = m.groups()
+    return synset, int(a), int(e), int(t), int(d)
+
+
+def list_renderforcnn(
+    root: str | Path, classes: Sequence[str] = PASCAL3D_CLASSES
+) -> tuple[list[SyntheticView], list[str]]:
+    """All RenderForCNN images of ``classes`` (sorted; ``class_index`` is the position in
+    ``classes``), and the file names that do not parse."""
+    root = Path(root)
+    classes = check_classes(classes)
+    views, bad = [], []
+    for cls in classes:
+        synset = RENDERFORCNN_SYNSETS[cls]
+        folder = root / synset
+        if not folder.is_dir():
+            continue
+        for model in sorted(os.scandir(folder), key=lambda e: e.name):
+            if not model.is_dir():
+                continue
+            for entry in sorted(os.scandir(model.path), key=lambda e: e.name):
+                if not entry.name.endswith(".png"):
+                    continue
+                try:
+                    s, a, e, t, _ = parse_renderforcnn_name(entry.name)
+                except ValueError:
+                    bad.append(entry.path)
+                    continue
+                if s != synset:
+                    bad.append(entry.path)
+                    continue
+                views.append(SyntheticView(Path(entry.path), classes.index(cls), a, e, t))
+    return views, bad
+
+
+# --------------------------------------------------------------------------------------------------
+# Dataset
+# --------------------------------------------------------------------------------------------------
+
+
+class Pascal3DDataset(Dataset):
+    """Warped PASCAL3D+ objects, optionally augmented and mixed with RenderForCNN images.
+
+    Args:
+        real: the objects (:func:`list_pascal3d_objects`).
+        synthetic: RenderForCNN views to mix in (``None``: none).
+        synthetic_ratio: synthetic images per real image in an epoch.
+        augment: ``{"flip": bool, "box_jitter": float, "roll_std_deg": float}``; ``None``: no
+            augmentation (evaluation).
+        image_size: side of the warped images.
+        return_all: evaluation items (``rotations (1, 3, 3)`` + ``mask``) instead of ``rotation``.
+        on_corrupt: ``"fail"`` or ``"skip"`` (see :mod:`image2sphere.data.common`).
+        seed: seed of the augmentation and of the synthetic draws.
+        synthetic_focal: focal length (pixels) assumed for synthetic images.
+    """
+
+    def __init__(
+        self,
+        real: Sequence[Pascal3DObject],
+        synthetic: Sequence[SyntheticView] | None = None,
+        synthetic_ratio: float = 3.0,
+        augment: dict | None = None,
+        image_size: int = 224,
+        return_all: bool = False,
+        on_corrupt: str = "fail",
+        seed: int = 0,
+        synthetic_focal: float = 3000.0,
+    ):
+        self.real = list(real)
+        self.synthetic = list(synthetic) if synthetic else []
+        if synthetic_ratio < 0:
+            raise ValueError(f"dataset.synthetic_ratio must be >= 0, got {synthetic_ratio!r}")
+        self.n_synthetic = round(float(synthetic_ratio) * len(self.real)) if self.synthetic else 0
+        self.augment = _check_augment(augment)
+        self.image_size = int(image_size)
+        self.return_all = bool(return_all)
+        self.on_corrupt = check_corrupt_policy(on_corrupt, "dataset.on_corrupt")
+        self.seed = int(seed)
+        self.synthetic_focal = float(synthetic_focal)
+        self.epoch = 0
+        self._warned: set[str] = set()
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return len(self.real) + self.n_synthetic
+
+    def source(self, i: int) -> Pascal3DObject | SyntheticView:
+        """The real object or synthetic view behind item ``i`` (in the current epoch)."""
+        if i < len(self.real):
+            return self.real[i]
+        g = np.random.default_rng(stable_seed("synthetic-draw", self.seed, self.epoch, i))
+        return self.synthetic[int(g.integers(len(self.synthetic)))]
+
+    def sample(self, i: int) -> tuple[np.ndarray, np.ndarray, int]:
+        """Item ``i`` before normalisation: ``(uint8 image (S, S, 3), rotation (3, 3) float64, class)``."""
+        src = self.source(i)
+        image = decode_image(src.path if isinstance(src, SyntheticView) else src.image)
+        width, height = image.size
+        if isinstance(src, SyntheticView):
+            box = np.array([0.0, 0.0, width, height])
+            f = self.synthetic_focal
+            K = np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
+        else:
+            box = np.asarray(src.box, dtype=np.float64) - 0.5
+            K = src.intrinsics()
+        R = src.rotation
+        roll = 0.0
+        if self.augment is not None:
+            g = np.random.default_rng(stable_seed("augment", self.seed, self.epoch, i))
+            if self.augment["flip"] and g.random() < 0.5:
+                image = ImageOps.mirror(image)
+                box = hflip_box(box, width)
+                K = K.copy()
+                K[0, 2] = width - K[0, 2]
+                R = hflip_rotation(R)
+            j = self.augment["box_jitter"]
+            if j > 0:
+                w, h = box[2] - box[0], box[3] - box[1]
+                jittered = box + g.uniform(-j, j, 4) * np.array([w, h, w, h])
+                if jittered[2] > jittered[0] and jittered[3] > jittered[1]:
+                    box = jittered
+            roll = math.radians(self.augment["roll_std_deg"]) * g.standard_normal()
+        H, W = box_to_virtual_camera(box, K, self.image_size, roll)
+        pixels = warp_image(image, H, self.image_size)
+        R = GL_TO_CV @ W @ GL_TO_CV @ R
+        return pixels, R, src.class_index
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor] | None:
+        try:
+            pixels, R, c = self.sample(i)
+        except CorruptImageError as e:
+            if self.on_corrupt == "fail":
+                raise
+            if e.source not in self._warned:
+                self._warned.add(e.source)
+                log.warning("skipping corrupt image %s (dataset.on_corrupt=skip)", e.source)
+            return None
+        item = {
+            "image": normalize_images(torch.from_numpy(pixels)),
+            "class_index": torch.tensor(c),
+            "index": torch.tensor(i),
+        }
+        rotation = torch.from_numpy(R.astype(np.float32))
+        if self.return_all:
+            item["rotations"] = rotation[None]
+            item["mask"] = torch.ones(1, dtype=torch.bool)
+        else:
+            item["rotation"] = rotation
+        return item
+
+
+def _check_augment(augment: dict | None) -> dict | None:
+    if augment is None or augment is False:
+        return None
+    augment = {**DEFAULT_AUGMENT, **dict(augment)}
+    unknown = set(augment) - set(DEFAULT_AUGMENT)
+    if unknown:
+        raise ValueError(f"dataset.augment has unknown keys {sorted(unknown)} (known: {sorted(DEFAULT_AUGMENT)})")
+    if not 0 <= float(augment["box_jitter"]) < 0.5:
+        raise ValueError(f"dataset.augment.box_jitter must be in [0, 0.5), got {augment['box_jitter']!r}")
+    if float(augment["roll_std_deg"]) < 0:
+        raise ValueError(f"dataset.augment.roll_std_deg must be >= 0, got {augment['roll_std_deg']!r}")
+    return {"flip": bool(augment["flip"]), "box_jitter": float(augment["box_jitter"]),
+            "roll_std_deg": float(augment["roll_std_deg"])}  # fmt: skip
+
+
+# --------------------------------------------------------------------------------------------------
+# DataModule
+# --------------------------------------------------------------------------------------------------
+
+
+def _check_layout(root: Path) -> None:
+    needed = [root / "Images", root / "Annotations", root / "Image_sets", root / _VOC_LISTS]
+    if not root.is_dir() or not all(p.is_dir() for p in needed):
+        missing = [str(p.relative_to(root)) for p in needed if not p.is_dir()] if root.is_dir() else []
+        raise missing_dataset_error(
+            "PASCAL3D+",
+            root,
+            "the unpacked PASCAL3D+_release1.1 folder with Images/, Annotations/, Image_sets/ and "
+            f"{_VOC_LISTS.as_posix()}/" + (f" (missing: {', '.join(missing)})" if missing else ""),
+            PASCAL3D_URL,
+            "dataset.root",
+        )
+
+
+def _check_synthetic_layout(root: Path) -> None:
+    if not root.is_dir() or not any((root / s).is_dir() for s in RENDERFORCNN_SYNSETS.values()):
+        raise missing_dataset_error(
+            "RenderForCNN synthetic images",
+            root,
+            "one folder per ShapeNet synset (e.g. 02691156/ for aeroplane) holding "
+            "{md5}/{synset}_{md5}_a{az}_e{el}_t{tilt}_d{dist}.png",
+            RENDERFORCNN_URL + "; or train without them: dataset.synthetic_root=null",
+            "dataset.synthetic_root",
+        )
+
+
+class Pascal3DDataModule(pl.LightningDataModule):
+    """PASCAL3D+ train (real + synthetic, augmented) / validation / test loaders.
+
+    Args:
+        root: the unpacked ``PASCAL3D+_release1.1``.
+        synthetic_root: the RenderForCNN images (``None``: real images only).
+        synthetic_ratio: synthetic images per real image in a training epoch (paper: 3).
+        objects: ``"first"`` or ``"all"`` (see the module docstring).
+        image_size: side of the warped images (224).
+        augment: training augmentation (``{"flip", "box_jitter", "roll_std_deg"}``); ``None``: none.
+        val_per_class: real training images per class held out (chosen with ``seed``) for validation.
+        synthetic_focal: focal length (pixels) assumed for synthetic images.
+        batch_size, num_workers, pin_memory: loader settings.
+        on_corrupt: ``"fail"`` or ``"skip"`` for images that do not decode.
+        seed: seed of the validation split, shuffling, augmentation and synthetic draws.
+        classes: the categories used (default all 12); ``class_index`` is the position in this list.
+    """
+
+    def __init__(
+        self,
+        root: str,
+        synthetic_root: str | None = None,
+        synthetic_ratio: float = 3.0,
+        objects: str = "first",
+        image_size: int = 224,
+        augment: dict | None = DEFAULT_AUGMENT,
+        val_per_class: int = 0,
+        synthetic_focal: float = 3000.0,
+        batch_size: int = 64,
+        num_workers: int = 0,
+        pin_memory: bool = False,
+        on_corrupt: str = "fail",
+        seed: int = 0,
+        classes: Sequence[str] = PASCAL3D_CLASSES,
+    ):
+        super().__init__()
+        self.classes = check_classes(classes)
+        if objects not in OBJECT_MODES:
+            raise ValueError(f"dataset.objects must be one of {OBJECT_MODES}, got {objects!r}")
+        if not isinstance(synthetic_ratio, (int, float)) or synthetic_ratio < 0:
+            raise ValueError(f"dataset.synthetic_ratio must be a number >= 0, got {synthetic_ratio!r}")
+        if not isinstance(val_per_class, int) or val_per_class < 0:
+            raise ValueError(f"dataset.val_per_class must be an integer >= 0, got {val_per_class!r}")
+        if image_size < 8 or batch_size < 1 or num_workers < 0 or synthetic_focal <= 0:
+            raise ValueError(
+                "dataset.image_size must be >= 8, batch_size >= 1, num_workers >= 0 and synthetic_focal > 0; "
+                f"got {image_size}, {batch_size}, {num_workers}, {synthetic_focal}"
+            )
+        self.augment = _check_augment(augment)
+        self.on_corrupt = check_corrupt_policy(on_corrupt, "dataset.on_corrupt")
+        self.root = Path(root)
+        _check_layout(self.root)
+        self.synthetic_root = Path(synthetic_root) if synthetic_root is not None else None
+        if self.synthetic_root is not None:
+            _check_synthetic_layout(self.synthetic_root)
+        self.synthetic_ratio = float(synthetic_ratio)
+        self.objects = objects
+        self.image_size = int(image_size)
+        self.val_per_class = val_per_class
+        self.synthetic_focal = float(synthetic_focal)
+        self.batch_size = int(batch_size)
+        self.num_workers = int(num_workers)
+        self.pin_memory = bool(pin_memory)
+        self.seed = int(seed)
+        self.class_names = list(self.classes)
+        self.data_train = self.data_val = self.data_test = None
+
+    def _objects(self, split: str) -> list[Pascal3DObject]:
+        objects, dropped = list_pascal3d_objects(self.root, split, self.objects, self.classes)
+        log.info("PASCAL3D+ %s: %d objects kept; dropped: %s", split, len(objects), dropped or "none")
+        if not objects:
+            raise ValueError(
+                f"PASCAL3D+ {split} split at {self.root} has no usable objects (dropped: {dropped or 'none'}); "
+                "check the download with: python -m image2sphere.data.verify pascal3d " + str(self.root)
+            )
+        return objects
+
+    def setup(self, stage: str | None = None) -> None:
+        common = dict(image_size=self.image_size, on_corrupt=self.on_corrupt, seed=self.seed)
+        if stage in (None, "fit", "validate") and self.data_train is None:
+            objects = self._objects("train")
+            val_images: set[Path] = set()
+            if self.val_per_class:
+                for c in range(len(self.classes)):
+                    images = sorted({o.image for o in objects if o.class_index == c})
+                    g = torch.Generator().manual_seed(stable_seed("val-split", self.seed, c))
+                    pick = torch.randperm(len(images), generator=g)[: self.val_per_class].tolist()
+                    val_images.update(images[k] for k in pick)
+            train = [o for o in objects if o.image not in val_images]
+            synthetic = None
+            if self.synthetic_root is not None and self.synthetic_ratio > 0:
+                synthetic, bad = list_renderforcnn(self.synthetic_root, self.classes)
+                if bad:
+                    log.warning("%d RenderForCNN file names do not parse and are ignored, e.g. %s", len(bad), bad[0])
+                if not synthetic:
+                    raise ValueError(f"no RenderForCNN images found under {self.synthetic_root}")
+                log.info("RenderForCNN: %d synthetic images", len(synthetic))
+            self.data_train = Pascal3DDataset(
+                train, synthetic, self.synthetic_ratio, self.augment, synthetic_focal=self.synthetic_focal, **common
+            )
+            if val_images:
+                val = [o for o in objects if o.image in val_images]
+                self.data_val = Pascal3DDataset(val, return_all=True, **common)
+        if stage in (None, "test") and self.data_test is None:
+            self.data_test = Pascal3DDataset(self._objects("test"), return_all=True, **common)
+
+    def _loader(self, dataset, train: bool) -> DataLoader:
+        return DataLoader(
+            dataset,
+            batch_size=self.batch_size,
+            sampler=EpochShuffleSampler(len(dataset), self.seed, dataset) if train else None,
+            shuffle=False,
+            drop_last=False,
+            num_workers=self.num_workers,
+            pin_memory=self.pin_memory,
+            collate_fn=collate_skipping_corrupt,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader(self.data_train, train=True)
+
+    def val_dataloader(self) -> DataLoader | list:
+        return self._loader(self.data_val, train=False) if self.data_val is not None else []
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader(self.data_test, train=False)
+
+
+# --------------------------------------------------------------------------------------------------
+# verify
+# --------------------------------------------------------------------------------------------------
+
+
+def verify_pascal3d(
+    root: str | Path,
+    synthetic_root: str | Path | None = None,
+    objects: str = "first",
+    decode: bool = True,
+    decode_synthetic: bool = False,
+    progress: bool = True,
+    classes: Sequence[str] = PASCAL3D_CLASSES,
+) -> VerifyReport:
+    """Check a PASCAL3D+ download (and optionally RenderForCNN) before training.
+
+    Per split and class: images listed vs found (every ImageNet-listed image must exist), objects
+    kept by the protocol; annotations that do not parse; images that do not decode (real images
+    when ``decode``, synthetic ones too when ``decode_synthetic``).
+    """
+    from tqdm import tqdm
+
+    root = Path(root)
+    classes = check_classes(classes)
+    report = VerifyReport("PASCAL3D+", root)
+    _check_layout(root)
+    to_decode: list[Path] = []
+    for split in ("train", "test"):
+        for cls in classes:
+            try:
+                entries = list_split_images(root, cls, split)
+            except FileNotFoundError as e:
+                report.problems.append(str(e))
+                continue
+            listed = [e for e in entries if e[2]]
+            report.count(f"{split} imagenet images", cls, sum(e[0].is_file() for e in listed), len(listed))
+            report.count(f"{split} pascal images", cls, sum(not e[2] for e in entries))
+            kept = 0
+            for image, annotation, _ in entries:
+                if not image.is_file():
+                    report.problems.append(f"missing image {image}")
+                    continue
+                to_decode.append(image)
+                try:
+                    objs = read_pascal3d_annotation(annotation)
+                except (FileNotFoundError, ValueError) as e:
+                    report.problems.append(str(e))
+                    continue
+                objs = objs[:1] if objects == "first" else [o for o in objs if o["class"] == cls]
+                kept += sum(drop_reason(o) is None for o in objs)
+            report.count(f"{split} objects kept", cls, kept)
+    if decode:
+        for image in tqdm(to_decode, desc="decoding PASCAL3D+ images", disable=not progress):
+            try:
+                decode_image(image)
+            except CorruptImageError:
+                report.unreadable.append(str(image))
+    if synthetic_root is not None:
+        synthetic_root = Path(synthetic_root)
+        _check_synthetic_layout(synthetic_root)
+        views, bad = list_renderforcnn(synthetic_root, classes)
+        report.problems += [f"not a RenderForCNN image name: {b}" for b in bad]
+        per_class = np.bincount([v.class_index for v in views], minlength=len(classes))
+        for cls, n in zip(classes, per_class, strict=True):
+            report.count("synthetic images", cls, int(n))
+            if n == 0:
+                report.problems.append(
+                    f"no RenderForCNN images for {cls} ({synthetic_root / RENDERFORCNN_SYNSETS[cls]})"
+                )
+        if decode_synthetic:
+            for v in tqdm(views, desc="decoding RenderForCNN images", disable=not progress):
+                try:
+                    decode_image(v.path)
+                except CorruptImageError:
+                    report.unreadable.append(str(v.path))
+    report.notes.append(
+        f"objects={objects!r}; 'pascal images' counts VOC-listed images present in Images/{{cls}}_pascal "
+        "(VOC lists name every VOC image, so no expected count)"
+    )
+    return report

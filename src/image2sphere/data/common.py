@@ -21,10 +21,11 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import lightning.pytorch as pl
 import numpy as np
 import torch
 from PIL import Image, UnidentifiedImageError
-from torch.utils.data import Sampler, default_collate
+from torch.utils.data import DataLoader, Sampler, default_collate
 
 __all__ = [
     "CORRUPT_POLICIES",
@@ -33,12 +34,15 @@ __all__ = [
     "CorruptImageError",
     "DatasetNotFoundError",
     "EpochShuffleSampler",
+    "PoseDataModule",
     "VerifyReport",
     "check_corrupt_policy",
     "collate_skipping_corrupt",
     "decode_image",
     "load_image",
     "missing_dataset_error",
+    "single_label_item",
+    "skip_corrupt",
     "normalize_images",
     "stable_seed",
 ]
@@ -110,6 +114,36 @@ def load_image(source: str | Path | bytes, image_size: int | None = None, name: 
     if image_size is not None and im.size != (image_size, image_size):
         im = im.resize((image_size, image_size), Image.Resampling.BILINEAR, reducing_gap=None)
     return torch.from_numpy(np.asarray(im, dtype=np.uint8).copy())
+
+
+def skip_corrupt(error: CorruptImageError, policy: str, warned: set[str]) -> None:
+    """Apply ``dataset.on_corrupt`` to a corrupt image: re-raise on ``"fail"``; on ``"skip"`` log it
+    (once per image; ``warned`` remembers which) and return, the caller's item being ``None``."""
+    if policy == "fail":
+        raise error
+    if error.source not in warned:
+        warned.add(error.source)
+        log.warning("skipping corrupt image %s (dataset.on_corrupt=skip)", error.source)
+
+
+def single_label_item(
+    image: torch.Tensor, class_index: int, index: int, rotation: np.ndarray, return_all: bool
+) -> dict[str, torch.Tensor]:
+    """A dataset item with one rotation label: ``image`` uint8 ``(H, W, 3)`` normalised to ``(3, H, W)``,
+    ``class_index``, ``index`` and ``rotation (3, 3)``, or for evaluation (``return_all``) the
+    one-element set ``rotations (1, 3, 3)`` with ``mask (1,)``, the format of multi-label sets."""
+    item = {
+        "image": normalize_images(image),
+        "class_index": torch.tensor(int(class_index), dtype=torch.int64),
+        "index": torch.tensor(int(index), dtype=torch.int64),
+    }
+    rotation = torch.as_tensor(np.asarray(rotation, dtype=np.float32))
+    if return_all:
+        item["rotations"] = rotation[None]
+        item["mask"] = torch.ones(1, dtype=torch.bool)
+    else:
+        item["rotation"] = rotation
+    return item
 
 
 def collate_skipping_corrupt(items: Sequence[dict | None]) -> dict | None:
@@ -200,3 +234,35 @@ class EpochShuffleSampler(Sampler[int]):
 
     def __len__(self) -> int:
         return self.n
+
+
+class PoseDataModule(pl.LightningDataModule):
+    """The loaders shared by the dataset modules: a seeded per-epoch shuffle for training, the
+    dataset order for evaluation, every image kept (no dropped last batch), corrupt images skipped
+    by :func:`collate_skipping_corrupt`.
+
+    Subclasses set ``data_train``, ``data_val`` (or ``None``), ``data_test`` in ``setup`` and
+    ``batch_size``, ``num_workers``, ``pin_memory``, ``seed`` and ``class_names`` in ``__init__``.
+    """
+
+    def _loader(self, dataset, train: bool) -> DataLoader:
+        return DataLoader(
+            dataset,
+            batch_size=self.batch_size,
+            sampler=EpochShuffleSampler(len(dataset), self.seed, dataset) if train else None,
+            shuffle=False,
+            drop_last=False,
+            num_workers=self.num_workers,
+            pin_memory=self.pin_memory,
+            persistent_workers=False,
+            collate_fn=collate_skipping_corrupt,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader(self.data_train, train=True)
+
+    def val_dataloader(self) -> DataLoader | list:
+        return self._loader(self.data_val, train=False) if self.data_val is not None else []
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader(self.data_test, train=False)

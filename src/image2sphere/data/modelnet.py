@@ -48,23 +48,22 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import lightning.pytorch as pl
 import lmdb
 import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import Dataset
 
 from image2sphere.data.common import (
     CorruptImageError,
-    EpochShuffleSampler,
+    PoseDataModule,
     VerifyReport,
     check_corrupt_policy,
-    collate_skipping_corrupt,
     decode_image,
     load_image,
     missing_dataset_error,
-    normalize_images,
+    single_label_item,
+    skip_corrupt,
     stable_seed,
 )
 
@@ -409,24 +408,9 @@ class ModelNet10Dataset(Dataset):
         try:
             image = load_image(self._record(key), self.image_size, name=name)
         except CorruptImageError as e:
-            if self.on_corrupt == "fail":
-                raise
-            if key not in self._warned:
-                self._warned.add(key)
-                log.warning("skipping corrupt image %s (%s)", name, e)
+            skip_corrupt(e, self.on_corrupt, self._warned)
             return None
-        item = {
-            "image": normalize_images(image),
-            "class_index": torch.tensor(int(self.labels.class_index[row]), dtype=torch.int64),
-            "index": torch.tensor(row, dtype=torch.int64),
-        }
-        rotation = torch.from_numpy(self.labels.rotations[row].copy())
-        if self.return_all:
-            item["rotations"] = rotation[None]
-            item["mask"] = torch.ones(1, dtype=torch.bool)
-        else:
-            item["rotation"] = rotation
-        return item
+        return single_label_item(image, self.labels.class_index[row], row, self.labels.rotations[row], self.return_all)
 
 
 def _check_int(value: object, key: str, minimum: int) -> int:
@@ -435,7 +419,7 @@ def _check_int(value: object, key: str, minimum: int) -> int:
     return value
 
 
-class ModelNet10DataModule(pl.LightningDataModule):
+class ModelNet10DataModule(PoseDataModule):
     """ModelNet10-SO(3) train / validation / test loaders.
 
     Args:
@@ -546,29 +530,6 @@ class ModelNet10DataModule(pl.LightningDataModule):
         if stage in (None, "test") and self.data_test is None:
             labels = self.labels(self.test_split)
             self.data_test = ModelNet10Dataset(split=self.test_split, return_all=True, labels=labels, **common)
-
-    def _loader(self, dataset: ModelNet10Dataset, train: bool) -> DataLoader:
-        sampler = EpochShuffleSampler(len(dataset), self.seed, dataset) if train else None
-        return DataLoader(
-            dataset,
-            batch_size=self.batch_size,
-            sampler=sampler,
-            shuffle=False,
-            drop_last=False,
-            num_workers=self.num_workers,
-            pin_memory=self.pin_memory,
-            persistent_workers=False,
-            collate_fn=collate_skipping_corrupt,
-        )
-
-    def train_dataloader(self) -> DataLoader:
-        return self._loader(self.data_train, train=True)
-
-    def val_dataloader(self) -> DataLoader | list:
-        return self._loader(self.data_val, train=False) if self.data_val is not None else []
-
-    def test_dataloader(self) -> DataLoader:
-        return self._loader(self.data_test, train=False)
 
 
 # ----------------------------------------------------------------------------------------------

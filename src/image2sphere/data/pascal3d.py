@@ -53,22 +53,21 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import lightning.pytorch as pl
 import numpy as np
 import torch
 from PIL import ImageOps
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import Dataset
 
 from image2sphere.data.augment import GL_TO_CV, box_to_virtual_camera, hflip_box, hflip_rotation, warp_image
 from image2sphere.data.common import (
     CorruptImageError,
-    EpochShuffleSampler,
+    PoseDataModule,
     VerifyReport,
     check_corrupt_policy,
-    collate_skipping_corrupt,
     decode_image,
     missing_dataset_error,
-    normalize_images,
+    single_label_item,
+    skip_corrupt,
     stable_seed,
 )
 
@@ -104,10 +103,13 @@ RENDERFORCNN_SYNSETS = {
     "motorbike": "03790512", "sofa": "04256520", "train": "04468005", "tvmonitor": "03211117",
 }  # fmt: skip
 OBJECT_MODES = ("first", "all")
-PASCAL3D_URL = "https://cvgl.stanford.edu/projects/pascal3d.html (PASCAL3D+_release1.1.zip)"
+PASCAL3D_URL = "ftp://cs.stanford.edu/cs/cvgl/PASCAL3D+_release1.1.zip (see cvgl.stanford.edu/projects/pascal3d.html)"
 RENDERFORCNN_URL = (
-    "https://github.com/ShapeNet/RenderForCNN (syn_images_cropped_bkg_overlaid.tar; needs a free ImageNet account)"
+    "https://shapenet.cs.stanford.edu/media/syn_images_cropped_bkg_overlaid.tar "
+    "(github.com/ShapeNet/RenderForCNN; needs a free ImageNet account)"
 )
+# RenderForCNN names angles as 3-digit integers (its README: a tilt written t016 is -16 = 344 degrees
+# in PASCAL3D+'s convention); a minus sign is accepted too
 _SYNTHETIC_NAME = re.compile(r"^(\d{8})_([0-9a-f]+)_a(-?\d+)_e(-?\d+)_t(-?\d+)_d(-?\d+)\.png$")
 _VOC_LISTS = Path("PASCAL", "VOCdevkit", "VOC2012", "ImageSets", "Main")
 DEFAULT_AUGMENT = {"flip": True, "box_jitter": 0.1, "roll_std_deg": 7.6}
@@ -505,24 +507,9 @@ class Pascal3DDataset(Dataset):
         try:
             pixels, R, c = self.sample(i)
         except CorruptImageError as e:
-            if self.on_corrupt == "fail":
-                raise
-            if e.source not in self._warned:
-                self._warned.add(e.source)
-                log.warning("skipping corrupt image %s (dataset.on_corrupt=skip)", e.source)
+            skip_corrupt(e, self.on_corrupt, self._warned)
             return None
-        item = {
-            "image": normalize_images(torch.from_numpy(pixels)),
-            "class_index": torch.tensor(c),
-            "index": torch.tensor(i),
-        }
-        rotation = torch.from_numpy(R.astype(np.float32))
-        if self.return_all:
-            item["rotations"] = rotation[None]
-            item["mask"] = torch.ones(1, dtype=torch.bool)
-        else:
-            item["rotation"] = rotation
-        return item
+        return single_label_item(torch.from_numpy(pixels), c, i, R, self.return_all)
 
 
 def _check_augment(augment: dict | None) -> dict | None:
@@ -571,7 +558,7 @@ def _check_synthetic_layout(root: Path) -> None:
         )
 
 
-class Pascal3DDataModule(pl.LightningDataModule):
+class Pascal3DDataModule(PoseDataModule):
     """PASCAL3D+ train (real + synthetic, augmented) / validation / test loaders.
 
     Args:
@@ -676,27 +663,6 @@ class Pascal3DDataModule(pl.LightningDataModule):
                 self.data_val = Pascal3DDataset(val, return_all=True, **common)
         if stage in (None, "test") and self.data_test is None:
             self.data_test = Pascal3DDataset(self._objects("test"), return_all=True, **common)
-
-    def _loader(self, dataset, train: bool) -> DataLoader:
-        return DataLoader(
-            dataset,
-            batch_size=self.batch_size,
-            sampler=EpochShuffleSampler(len(dataset), self.seed, dataset) if train else None,
-            shuffle=False,
-            drop_last=False,
-            num_workers=self.num_workers,
-            pin_memory=self.pin_memory,
-            collate_fn=collate_skipping_corrupt,
-        )
-
-    def train_dataloader(self) -> DataLoader:
-        return self._loader(self.data_train, train=True)
-
-    def val_dataloader(self) -> DataLoader | list:
-        return self._loader(self.data_val, train=False) if self.data_val is not None else []
-
-    def test_dataloader(self) -> DataLoader:
-        return self._loader(self.data_test, train=False)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -24,20 +24,19 @@ import logging
 from collections.abc import Sequence
 from pathlib import Path
 
-import lightning.pytorch as pl
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import Dataset
 
 from image2sphere.data.common import (
     CorruptImageError,
-    EpochShuffleSampler,
+    PoseDataModule,
     VerifyReport,
     check_corrupt_policy,
-    collate_skipping_corrupt,
     load_image,
     missing_dataset_error,
     normalize_images,
+    skip_corrupt,
     stable_seed,
 )
 from image2sphere.data.shapes import SHAPES, SYMSOL_I_SHAPES, check_shape_list
@@ -221,11 +220,7 @@ class SymsolDataset(Dataset):
         try:
             image = self._cache[i] if self._cache is not None else self._read(i)
         except CorruptImageError as e:
-            if self.on_corrupt == "fail":
-                raise
-            if e.source not in self._warned:
-                self._warned.add(e.source)
-                log.warning("skipping corrupt image %s (dataset.on_corrupt=skip)", e.source)
+            skip_corrupt(e, self.on_corrupt, self._warned)
             return None
         item = {
             "image": normalize_images(image),
@@ -247,7 +242,7 @@ class SymsolDataset(Dataset):
         return item
 
 
-class SymsolDataModule(pl.LightningDataModule):
+class SymsolDataModule(PoseDataModule):
     """SYMSOL train / validation / test loaders.
 
     Args:
@@ -406,29 +401,6 @@ class SymsolDataModule(pl.LightningDataModule):
                 cache_images=self.cache_images, rotations=rotations, **common,
             )  # fmt: skip
 
-    def _loader(self, dataset, train: bool) -> DataLoader:
-        sampler = EpochShuffleSampler(len(dataset), self.seed, dataset) if train else None
-        return DataLoader(
-            dataset,
-            batch_size=self.batch_size,
-            sampler=sampler,
-            shuffle=False,
-            drop_last=False,
-            num_workers=self.num_workers,
-            pin_memory=self.pin_memory,
-            persistent_workers=False,
-            collate_fn=collate_skipping_corrupt,
-        )
-
-    def train_dataloader(self) -> DataLoader:
-        return self._loader(self.data_train, train=True)
-
-    def val_dataloader(self) -> DataLoader | list:
-        return self._loader(self.data_val, train=False) if self.data_val is not None else []
-
-    def test_dataloader(self) -> DataLoader:
-        return self._loader(self.data_test, train=False)
-
 
 def verify_symsol(
     root: str | Path, shapes: Sequence[str] | None = None, decode: bool = True, progress: bool = True
@@ -440,6 +412,9 @@ def verify_symsol(
 
     root = Path(root)
     report = VerifyReport("SYMSOL", root)
+    if not root.is_dir():
+        report.problems.append(f"{root} does not exist: expected the unzipped symsol_dataset.zip from {SYMSOL_URL}")
+        return report
     for split in ("train", "test"):
         path = root / split / "rotations.npz"
         if not path.is_file():

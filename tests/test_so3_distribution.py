@@ -258,3 +258,14 @@ def test_bad_input():
             dist.grid_logits(level)
         with pytest.raises(ValueError):
             dist.mode(level)
+
+
+def test_refinement_works_under_inference_mode():
+    """Lightning's test loop runs under torch.inference_mode; refinement must still use autograd."""
+    target = haar_rotations(1, seed=8)
+    dist = SO3Distribution(0.05 * flat_wigner(4, target), 4)
+    plain = dist.mode(2, refine=True, steps=30)
+    with torch.inference_mode():
+        inside = SO3Distribution(dist.coeffs.clone(), 4).mode(2, refine=True, steps=30)
+    torch.testing.assert_close(inside, plain)
+    assert geodesic_distance(plain, target).item() < geodesic_distance(dist.mode(2), target).item()

@@ -133,9 +133,15 @@ class SO3Distribution:
         return self._refine(R0, steps, lr if lr is not None else spacing / 10)
 
     def _refine(self, R0: torch.Tensor, steps: int, lr: float) -> torch.Tensor:
+        # Gradient ascent needs autograd even when called under torch.inference_mode (Lightning's
+        # test loop): leave it, and copy the inputs out of inference tensors.
+        with torch.inference_mode(False):
+            return self._refine_impl(R0.clone(), steps, lr)
+
+    def _refine_impl(self, R0: torch.Tensor, steps: int, lr: float) -> torch.Tensor:
         # All bands at once, as block-diagonal matrices [B, n, n] with n = (lmax+1)^2: one matrix
         # exponential per step instead of one per l (many tiny ops are slow on busy CPUs).
-        coeffs = self.coeffs.detach()
+        coeffs = self.coeffs.detach().clone()
         with torch.no_grad():
             angles = matrix_to_angles(R0)
             n = (self.lmax + 1) ** 2
@@ -159,6 +165,106 @@ class SO3Distribution:
                 optimizer.step()
                 schedule.step()
         return (R0 @ rotvec_to_matrix(w.detach())).detach()
+
+    def points_above(
+        self, threshold: float, level: int, max_points: int = 2_000_000
+    ) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Grid points whose probability ``p_i`` is at least ``threshold``, per distribution, streamed.
+
+        A point's probability is at most its pixel's gamma-marginal, so only the fibres of pixels
+        whose marginal reaches ``threshold`` are evaluated. Returns, for each distribution, ``(index
+        (K,), prob (K,))`` in decreasing probability (pixel-major grid indices of ``level``). Raises
+        ``ValueError`` when more than ``max_points`` points pass (raise the threshold).
+        """
+        thresholds = torch.as_tensor(threshold, dtype=torch.float64).reshape(-1).expand(self.batch_size)
+        if not (thresholds > 0).all():
+            raise ValueError(f"threshold must be > 0, got {threshold!r}")
+        ev = self._evaluator(level)
+        out = []
+        with torch.no_grad():
+            coeffs = self.coeffs.detach()
+            pix_lse = ev.pixel_logsumexp(coeffs)  # [B, P]
+            log_z = torch.logsumexp(pix_lse, dim=1)  # [B]
+            for b in range(self.batch_size):
+                threshold = float(thresholds[b])
+                log_t = math.log(threshold)
+                pix = torch.nonzero(pix_lse[b] - log_z[b] >= log_t).flatten()  # candidate pixels
+                if len(pix) * ev.n_gamma > 4 * max_points:
+                    raise ValueError(
+                        f"threshold {threshold:g} keeps too many points at level {level}; raise it (the uniform "
+                        f"probability is {1 / ev.n_points:.3g})"
+                    )
+                log_p = ev.gamma_logits(coeffs[b : b + 1], pix[None])[0] - log_z[b]  # [K, G]
+                keep = log_p >= log_t
+                index = (pix[:, None] * ev.n_gamma + torch.arange(ev.n_gamma, device=pix.device))[keep]
+                prob = log_p[keep].exp()
+                if len(index) > max_points:
+                    raise ValueError(f"{len(index)} points pass threshold {threshold:g} (> max_points={max_points})")
+                order = torch.argsort(prob, descending=True)
+                out.append((index[order], prob[order]))
+        return out
+
+    def default_threshold(self, level: int) -> torch.Tensor:
+        """``min(10 / N, max_i p_i)`` per distribution ``(B,)``: ten times the uniform probability,
+        lowered to the top probability for flat distributions so that the top point always passes."""
+        ev = self._evaluator(level)
+        with torch.no_grad():
+            lse, top, _ = ev.logsumexp_and_max(self.coeffs.detach())
+        p_max = (top - lse).double().exp().cpu()
+        return torch.clamp(p_max * (1 - 1e-6), max=10.0 / ev.n_points)
+
+    def modes(
+        self,
+        level: int,
+        k: int = 5,
+        radius_deg: float = 15.0,
+        threshold: float | None = None,
+        refine: bool = False,
+    ) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Up to ``k`` separate modes per distribution and the probability mass around each.
+
+        Greedy non-maximum suppression on the grid of ``level``: the most probable remaining point
+        is a mode and the points within ``radius_deg`` of it are removed from the search; then every
+        point within ``radius_deg`` of a mode counts for its nearest mode. Only points with
+        ``p_i >= threshold`` take part (default :meth:`default_threshold`: ten times the uniform
+        probability, so that flat regions give no modes, or the top probability when that is lower).
+        The mass of a mode is the probability of the points counted for it; modes are returned in
+        decreasing mass, each as ``(rotations (k', 3, 3), mass (k',))``. With ``refine``
+        each mode is moved by gradient ascent on the Fourier series (as :meth:`mode`).
+        """
+        if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+            raise ValueError(f"k must be a positive integer, got {k!r}")
+        if not 0 < radius_deg < 180:
+            raise ValueError(f"radius_deg must be in (0, 180), got {radius_deg!r}")
+        threshold = self.default_threshold(level) if threshold is None else threshold
+        cos_half = math.cos(math.radians(radius_deg))
+        out = []
+        for b, (index, prob) in enumerate(self.points_above(threshold, level)):
+            R = so3_healpix_index_to_matrix(index, level, dtype=self.coeffs.dtype)  # [K, 3, 3]
+            flat = R.reshape(len(R), 9)
+            free = torch.ones(len(R), dtype=torch.bool)
+            chosen = []
+            while free.any() and len(chosen) < k:
+                i = int(torch.nonzero(free)[0])  # the most probable free point (sorted by prob)
+                # angle(Ri, Rj) <= r  <=>  trace(Ri^T Rj) >= 1 + 2 cos r
+                free &= flat @ flat[i] < 1 + 2 * cos_half
+                chosen.append(i)
+            if not chosen:
+                out.append((R.new_zeros(0, 3, 3), prob.new_zeros(0)))
+                continue
+            centres = R[chosen]
+            # each point counts for its nearest mode, when within the radius of it
+            similarity = flat @ flat[chosen].T  # [K, k] traces
+            best, owner = similarity.max(dim=1)
+            within = best >= 1 + 2 * cos_half
+            masses = torch.zeros(len(chosen), dtype=prob.dtype).index_add_(0, owner[within], prob[within])
+            if refine:
+                sub = SO3Distribution(self.coeffs[b : b + 1].expand(len(centres), -1), self.lmax)
+                spacing = 2 * math.pi / so3_grid_size(level)[1]
+                centres = sub._refine(centres, 100, spacing / 10)
+            order = torch.argsort(masses, descending=True)
+            out.append((centres[order], masses[order]))
+        return out
 
     def sample(
         self, n: int, level: int, generator: torch.Generator | None = None, return_index: bool = False

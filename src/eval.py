@@ -1,0 +1,19 @@
+"""``python -m src.eval ckpt_path=...``: the test metrics and plots of a checkpoint (see conf/eval.yaml)."""
+
+import hydra
+from omegaconf import DictConfig
+
+import image2sphere  # noqa: F401  (sets up the torchvision guard before Lightning is imported)
+from image2sphere.training import register_resolvers
+from image2sphere.training.evaluate import evaluate
+
+register_resolvers()
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="eval.yaml")
+def main(cfg: DictConfig) -> None:
+    evaluate(cfg)
+
+
+if __name__ == "__main__":
+    main()

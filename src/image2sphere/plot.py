@@ -1,0 +1,124 @@
+"""Pictures of distributions over SO(3), as in IPDF and I2S.
+
+Conventions
+-----------
+* A rotation is drawn through its XYX Euler angles, ``R = Rx(alpha) @ Ry(beta) @ Rx(gamma)``:
+  ``alpha`` is the longitude and ``pi/2 - beta`` the latitude of a point on a Mollweide map (that
+  point is the direction ``R @ e_x``), and ``gamma`` (the turn about that direction) its colour on
+  an HSV wheel, shown as an inset.
+* Grid points are drawn when their probability ``p_i`` reaches ``threshold`` (default ten times
+  the uniform probability, or the top probability of a flatter distribution); marker area is
+  proportional to ``p_i`` (the most probable point gets ``max_marker_area``). Ground-truth
+  rotations are rings in the colour of their own ``gamma``.
+* Only the points above the threshold are ever materialised
+  (:meth:`image2sphere.so3.distribution.SO3Distribution.points_above`), so level 5 (2.36M points)
+  is cheap. Figures are plain :class:`matplotlib.figure.Figure` objects (no pyplot state).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from matplotlib.figure import Figure
+
+from image2sphere.so3.distribution import SO3Distribution
+from image2sphere.so3.grid import so3_healpix_index_to_matrix
+
+__all__ = ["plot_so3_distribution", "rotation_to_plot_coords", "save_figure"]
+
+
+def rotation_to_plot_coords(R: torch.Tensor | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(longitude, latitude, hue)`` of rotations ``(..., 3, 3)``: radians in ``[-pi, pi]``,
+    ``[-pi/2, pi/2]`` and a hue in ``[0, 1)``, from XYX Euler angles (see the module docstring)."""
+    R = np.asarray(R.detach().cpu() if isinstance(R, torch.Tensor) else R, dtype=np.float64)
+    if R.shape[-2:] != (3, 3):
+        raise ValueError(f"rotations must have shape (..., 3, 3), got {R.shape}")
+    # R e_x = (cos b, sin a sin b, -cos a sin b); R^T e_x = (cos b, sin b sin g, sin b cos g)
+    beta = np.arccos(np.clip(R[..., 0, 0], -1.0, 1.0))
+    alpha = np.arctan2(R[..., 1, 0], -R[..., 2, 0])
+    gamma = np.arctan2(R[..., 0, 1], R[..., 0, 2])
+    return alpha, np.pi / 2 - beta, np.mod(gamma, 2 * np.pi) / (2 * np.pi)
+
+
+def _colour_wheel(fig: Figure, rect: tuple[float, float, float, float]) -> None:
+    from matplotlib import colormaps
+
+    ax = fig.add_axes(rect, projection="polar")
+    theta = np.linspace(0, 2 * np.pi, 121)
+    radius = np.array([0.6, 1.0])
+    ax.pcolormesh(theta, radius, np.tile(theta[:-1] / (2 * np.pi), (1, 1)), cmap=colormaps["hsv"], shading="flat")
+    ax.set_yticks([])
+    ax.set_xticks(np.radians([0, 90, 180, 270]))
+    ax.set_xticklabels(["0", "90", "180", "270"], fontsize=6)
+    ax.set_title("third angle (deg)", fontsize=7, pad=2)
+    ax.spines["polar"].set_visible(False)
+
+
+def plot_so3_distribution(
+    dist: SO3Distribution | None = None,
+    level: int = 5,
+    threshold: float | None = None,
+    gt_rotations: torch.Tensor | np.ndarray | None = None,
+    rotations: torch.Tensor | np.ndarray | None = None,
+    probs: torch.Tensor | np.ndarray | None = None,
+    title: str | None = None,
+    max_marker_area: float = 60.0,
+    figsize: tuple[float, float] = (8.0, 4.6),
+) -> Figure:
+    """Draw one distribution: ``dist`` (batch of one) on the grid of ``level``, or given points.
+
+    Args:
+        dist: the distribution; its grid points with ``p_i >= threshold`` are drawn.
+        level: grid level (5: the paper's plots).
+        threshold: probability below which points are not drawn (default: ``dist.default_threshold``).
+        gt_rotations: ``(M, 3, 3)`` ground-truth rotations, drawn as rings.
+        rotations, probs: instead of ``dist``, points ``(K, 3, 3)`` and their probabilities ``(K,)``.
+        title: figure title.
+
+    The scatter of the points is ``fig.axes[0].collections[0]``; the rings, when given, ``[1]``.
+    """
+    from matplotlib import colormaps
+
+    if dist is not None:
+        if dist.batch_size != 1:
+            raise ValueError(f"plot one distribution at a time (batch of 1), got a batch of {dist.batch_size}")
+        threshold = float(dist.default_threshold(level)[0]) if threshold is None else threshold
+        index, prob = dist.points_above(threshold, level)[0]
+        rotations = so3_healpix_index_to_matrix(index.cpu(), level, dtype=torch.float64)
+        probs = prob.cpu().double()
+    elif rotations is None or probs is None:
+        raise ValueError("pass dist, or rotations and probs")
+    probs = np.asarray(probs.detach().cpu() if isinstance(probs, torch.Tensor) else probs, dtype=np.float64)
+    if threshold is not None:
+        keep = probs >= threshold
+        rotations, probs = np.asarray(rotations)[keep], probs[keep]
+    lon, lat, hue = rotation_to_plot_coords(rotations)
+    cmap = colormaps["hsv"]
+
+    fig = Figure(figsize=figsize)
+    ax = fig.add_axes((0.04, 0.08, 0.78, 0.84), projection="mollweide")
+    area = max_marker_area * probs / probs.max() if len(probs) else probs
+    ax.scatter(lon, lat, s=area, c=cmap(hue), linewidths=0)
+    if gt_rotations is not None:
+        g_lon, g_lat, g_hue = rotation_to_plot_coords(gt_rotations)
+        ax.scatter(g_lon.reshape(-1), g_lat.reshape(-1), s=max_marker_area * 3, facecolors="none",
+                   edgecolors=cmap(g_hue.reshape(-1)), linewidths=1.5)  # fmt: skip
+    ax.grid(True, alpha=0.4)
+    ax.set_xticklabels([])
+    ax.tick_params(labelsize=7)
+    if title:
+        ax.set_title(title, fontsize=9)
+    _colour_wheel(fig, (0.84, 0.62, 0.14, 0.28))
+    fig.text(0.84, 0.5, f"{len(probs)} points" + (f"\np >= {threshold:.2g}" if threshold else ""), fontsize=7)
+    return fig
+
+
+def save_figure(fig: Figure, path: str | Path, dpi: int = 120) -> Path:
+    """Write ``fig`` as a PNG; an existing file is never overwritten (``FileExistsError``)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "xb") as f:
+        fig.savefig(f, format="png", dpi=dpi)
+    return path

@@ -1,0 +1,82 @@
+"""Loading the checkpoints written by ``python -m src.train`` safely, and rebuilding their model.
+
+A checkpoint (Lightning's ``.ckpt``) holds ``state_dict``, the plain hyperparameters, ``class_names``
+and ``run_config``: the resolved Hydra config of the run that wrote it. It is read with
+``torch.load(..., weights_only=True)``: only tensors and plain containers, never arbitrary pickled
+code. Every failure names the file and says what did not match.
+"""
+
+from __future__ import annotations
+
+import pickle
+import zipfile
+from pathlib import Path
+
+import torch
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+__all__ = ["CheckpointError", "build_module", "load_checkpoint"]
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file that is missing, unreadable, not from this project, or does not fit its model."""
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """The contents of a training checkpoint, read with ``weights_only=True`` onto the CPU."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(
+            f"checkpoint not found: {path} (a run writes them to logs/<task>/runs/<run>/checkpoints/last.ckpt)"
+        )
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:
+        raise CheckpointError(
+            f"{path} holds objects other than tensors and plain containers, which are not loaded (no pickled "
+            f"code is run): {str(e).splitlines()[0]}"
+        ) from e
+    except (RuntimeError, EOFError, OSError, zipfile.BadZipFile, ValueError) as e:
+        raise CheckpointError(f"cannot read checkpoint {path}: the file is truncated or corrupt ({e})") from e
+    if not isinstance(ckpt, dict) or "state_dict" not in ckpt:
+        raise CheckpointError(f"{path} is not a Lightning checkpoint (no 'state_dict')")
+    if not isinstance(ckpt.get("run_config"), dict) or "model" not in ckpt["run_config"]:
+        raise CheckpointError(
+            f"{path} has no 'run_config' with a 'model' section: it was not written by python -m src.train of "
+            "this project, so the network it holds cannot be rebuilt"
+        )
+    return ckpt
+
+
+def build_module(ckpt: dict, path: str | Path, **overrides):
+    """The :class:`~image2sphere.training.PoseEstimationModule` of a checkpoint, weights loaded.
+
+    ``overrides`` replace entries of the module config (e.g. ``eval_grid_level=5``). The encoder is
+    built without downloading pretrained weights (they are in the state dict anyway).
+    """
+    cfg = OmegaConf.create(ckpt["run_config"]["model"])
+    for key, value in overrides.items():
+        cfg[key] = value
+    if "encoder" in cfg.net and "weights" in cfg.net.encoder:
+        cfg.net.encoder.weights = None
+    module = instantiate(cfg)
+    state = ckpt["state_dict"]
+    own = module.state_dict()
+    missing = sorted(set(own) - set(state))
+    unexpected = sorted(set(state) - set(own))
+    wrong = sorted(k for k in set(own) & set(state) if own[k].shape != state[k].shape)
+    if missing or unexpected or wrong:
+        parts = []
+        for title, keys in (("missing", missing), ("unexpected", unexpected), ("of another shape", wrong)):
+            if keys:
+                shown = ", ".join(
+                    f"{k} {tuple(state[k].shape)} vs {tuple(own[k].shape)}" if title == "of another shape" else k
+                    for k in keys[:5]
+                )
+                parts.append(f"{len(keys)} parameters {title} ({shown}{', ...' if len(keys) > 5 else ''})")
+        raise CheckpointError(f"{path} does not fit the model its run_config describes: " + "; ".join(parts))
+    module.load_state_dict(state)
+    module.class_names = list(ckpt["class_names"]) if ckpt.get("class_names") else None
+    module.run_config = ckpt["run_config"]
+    return module.eval()

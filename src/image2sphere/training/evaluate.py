@@ -1,0 +1,129 @@
+"""The evaluation run behind ``python -m src.eval``: a checkpoint's SPEC-section-3 metrics and plots.
+
+The model is rebuilt from the checkpoint's own ``run_config`` (weights loaded with
+``weights_only=True``); the test set is the checkpoint's dataset unless ``dataset=...`` is given.
+Every test image is scored. The run directory receives ``metrics.json``, ``metrics.md`` (the
+per-class table) and ``plots/test_<i>.png`` (the distributions of the first ``plots`` test images,
+ground truth drawn as rings); the metrics also go to the configured logger.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from pathlib import Path
+
+import lightning.pytorch as pl
+import torch
+from hydra.errors import InstantiationException
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from image2sphere.so3.distribution import SO3Distribution
+from image2sphere.training.checkpoint import CheckpointError, build_module, load_checkpoint
+from image2sphere.training.pipeline import TABLE_COLUMNS, _finish_loggers, _instantiate_list, format_metrics_table
+
+__all__ = ["evaluate", "format_metrics_markdown"]
+
+log = logging.getLogger(__name__)
+
+
+def format_metrics_markdown(metrics: dict[str, float], class_names: list[str]) -> str:
+    """Per-class rows and the class mean as a markdown table (the columns of the printed table)."""
+    columns = [c for c in TABLE_COLUMNS if c[0] in metrics]
+    lines = ["| class | " + " | ".join(title for _, title, _ in columns) + " |", "|---" * (len(columns) + 1) + "|"]
+    for name in [*class_names, "mean"]:
+        key = "" if name == "mean" else f"/{name}"
+        if any(metric + key in metrics for metric, _, _ in columns):
+            cells = [fmt.format(metrics.get(metric + key, math.nan)).strip() for metric, _, fmt in columns]
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _datamodule(cfg: DictConfig, ckpt: dict):
+    if cfg.get("dataset") is not None:
+        return instantiate(cfg.dataset)
+    dataset = OmegaConf.create(ckpt["run_config"].get("dataset"))
+    if not dataset or "_target_" not in dataset:
+        raise CheckpointError(f"{cfg.ckpt_path} stores no dataset config: pass dataset=<name>")
+    try:
+        return instantiate(dataset)
+    except InstantiationException as e:
+        if isinstance(e.__cause__, (FileNotFoundError, ValueError)) and "not found" in str(e.__cause__):
+            raise e.__cause__ from None  # the data is missing: the reader's own message says where it looked
+        raise CheckpointError(
+            f"the dataset config stored in {cfg.ckpt_path} does not instantiate with this version "
+            f"({e.__cause__!r}); pass the dataset explicitly, e.g. dataset=symsol1 dataset.root=..."
+        ) from e
+
+
+def evaluate(cfg: DictConfig) -> dict[str, float]:
+    """Test the checkpoint ``cfg.ckpt_path``; returns the metrics."""
+    if cfg.get("ckpt_path") is None:
+        raise ValueError(
+            "ckpt_path is required: python -m src.eval ckpt_path=logs/train/runs/<run>/checkpoints/last.ckpt"
+        )
+    output_dir = Path(cfg.paths.output_dir)
+    if (output_dir / "metrics.json").exists():
+        raise FileExistsError(f"{output_dir / 'metrics.json'} already exists: choose another hydra.run.dir")
+    if cfg.get("seed") is not None:
+        pl.seed_everything(cfg.seed, workers=True)
+    ckpt = load_checkpoint(cfg.ckpt_path)
+    module = build_module(ckpt, cfg.ckpt_path, eval_grid_level=int(cfg.eval_grid_level), refine_mode=bool(cfg.refine))
+    datamodule = _datamodule(cfg, ckpt)
+    if cfg.get("batch_size") is not None:
+        if int(cfg.batch_size) < 1:
+            raise ValueError(f"batch_size must be >= 1, got {cfg.batch_size}")
+        datamodule.batch_size = int(cfg.batch_size)
+    names = list(getattr(datamodule, "class_names", []) or [])
+    trained = module.class_names or []
+    if getattr(module.net, "num_classes", 0) and names != trained[: len(names)]:
+        raise ValueError(
+            f"the model takes the class as input and was trained with classes {trained}; the dataset has {names}"
+        )
+    module.class_names = names or trained
+    loggers = _instantiate_list(cfg.get("logger"), "logger")
+    trainer: pl.Trainer = instantiate(cfg.trainer, logger=loggers or False, callbacks=[], enable_checkpointing=False)
+    start = time.perf_counter()
+    trainer.test(model=module, datamodule=datamodule)
+    metrics = {**module.test_metrics, "test_seconds": time.perf_counter() - start}
+    if trainer.is_global_zero:
+        output_dir.mkdir(parents=True, exist_ok=True)
+        with open(output_dir / "metrics.json", "x") as f:
+            json.dump({**metrics, "ckpt_path": str(cfg.ckpt_path), "eval_grid_level": int(cfg.eval_grid_level),
+                       "refine": bool(cfg.refine)}, f, indent=2, sort_keys=True)  # fmt: skip
+        table = format_metrics_markdown(metrics, module.class_names)
+        title = (
+            f"# {cfg.ckpt_path}\n\nTest metrics, eval grid level {cfg.eval_grid_level}, refine={bool(cfg.refine)}\n\n"
+        )
+        with open(output_dir / "metrics.md", "x") as f:
+            f.write(title + table)
+        if cfg.plots:
+            _plot_test_images(module, datamodule, int(cfg.plots), int(cfg.eval_grid_level), output_dir / "plots")
+        print(f"\nTest metrics ({cfg.ckpt_path}, eval grid level {cfg.eval_grid_level}, refine={bool(cfg.refine)}):")
+        print(format_metrics_table(metrics, module.class_names))
+        print(f"Run directory: {output_dir}\n")
+    _finish_loggers(loggers)
+    return metrics
+
+
+@torch.no_grad()
+def _plot_test_images(module, datamodule, n: int, level: int, folder: Path) -> None:
+    from image2sphere.plot import plot_so3_distribution, save_figure
+
+    dataset = datamodule.data_test
+    names = module.class_names or []
+    for i in range(min(n, len(dataset))):
+        item = dataset[i]
+        if item is None:  # a skipped corrupt image
+            continue
+        class_index = item["class_index"][None]
+        coeffs = module(item["image"][None].to(module.device), class_index.to(module.device))
+        dist = SO3Distribution(coeffs, module.lmax)
+        gt = item["rotations"][item["mask"]]
+        c = int(item["class_index"])
+        title = f"test image {i} ({names[c] if c < len(names) else c})"
+        save_figure(plot_so3_distribution(dist, level=level, gt_rotations=gt, title=title), folder / f"test_{i}.png")
+    log.info("plots of %d test images in %s", min(n, len(dataset)), folder)

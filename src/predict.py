@@ -1,0 +1,22 @@
+"""``python -m src.predict ckpt_path=... image=...``: modes and plot for one image (see conf/predict.yaml)."""
+
+import hydra
+from omegaconf import DictConfig
+
+import image2sphere  # noqa: F401  (sets up the torchvision guard before Lightning is imported)
+from image2sphere.inference import predict
+from image2sphere.training import register_resolvers
+
+register_resolvers()
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="predict.yaml")
+def main(cfg: DictConfig) -> None:
+    predict(
+        ckpt_path=cfg.ckpt_path, image=cfg.image, class_index=cfg.class_index, output=cfg.output, top_k=cfg.top_k,
+        level=cfg.level, radius_deg=cfg.radius_deg, threshold=cfg.threshold, device=cfg.device,
+    )  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,140 @@
+"""``python -m src.eval``, ``python -m src.predict``, the Predictor API and safe checkpoint loading,
+on a tiny checkpoint trained inside the test."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from conftest import haar_rotations
+from image2sphere.inference import Predictor
+from image2sphere.training.checkpoint import CheckpointError, build_module, load_checkpoint
+from test_train_entry import ENV, REPO, read_metrics, run_train
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> tuple[Path, Path, Path]:
+    """(checkpoint, its run directory, the data directory): one epoch of the tiny default run."""
+    root = tmp_path_factory.mktemp("tiny")
+    run = root / "run"
+    args = ["trainer.max_epochs=1", "logger=none", f"hydra.run.dir={run}"]
+    run_train(args, root / "data", root / "logs")
+    return run / "checkpoints" / "last.ckpt", run, root / "data"
+
+
+def _run(module: str, args: list[str], check: bool = True) -> subprocess.CompletedProcess:
+    proc = subprocess.run([sys.executable, "-m", module, *args], cwd=REPO, env=ENV, capture_output=True, text=True,
+                          timeout=900)  # fmt: skip
+    if check and proc.returncode != 0:
+        raise AssertionError(f"{module} {args} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}")
+    return proc
+
+
+def test_eval_scores_every_test_image_and_reproduces_the_training_metrics(trained, tmp_path):
+    ckpt, run, _ = trained
+    out = tmp_path / "eval"
+    # batch 4 over 6 test images: the last batch is partial and must be scored
+    proc = _run("src.eval", [f"ckpt_path={ckpt}", "eval_grid_level=3", "batch_size=4", "plots=2",
+                             f"hydra.run.dir={out}", "logger=csv"])  # fmt: skip
+    metrics = json.loads((out / "metrics.json").read_text())
+    trained_metrics = read_metrics(run)
+    assert metrics["n_images"] == trained_metrics["n_images"] == 6
+    for key in ("log_likelihood", "log_likelihood/cube", "spread_deg", "median_error_deg/cone", "acc15"):
+        assert metrics[key] == pytest.approx(trained_metrics[key], rel=1e-5, abs=1e-6), key
+    table = (out / "metrics.md").read_text()
+    assert "| class | log lik. |" in table and "| cube |" in table and "| mean |" in table
+    assert "med.err" in proc.stdout and str(ckpt) in proc.stdout
+    pngs = sorted(p.name for p in (out / "plots").iterdir())
+    assert pngs == ["test_0.png", "test_1.png"]
+    assert (out / "csv").is_dir()  # logged to the configured logger
+    # a second evaluation into the same directory is refused, nothing overwritten
+    before = (out / "metrics.json").read_bytes()
+    proc = _run("src.eval", [f"ckpt_path={ckpt}", f"hydra.run.dir={out}", "eval_grid_level=3"], check=False)
+    assert proc.returncode != 0 and (out / "metrics.json").read_bytes() == before
+
+
+def test_eval_with_refinement_changes_only_the_point_estimate(trained, tmp_path):
+    ckpt, run, _ = trained
+    out = tmp_path / "refined"
+    _run("src.eval", [f"ckpt_path={ckpt}", "eval_grid_level=3", "refine=true", "plots=0", f"hydra.run.dir={out}",
+                      "logger=none"])  # fmt: skip
+    metrics, trained_metrics = json.loads((out / "metrics.json").read_text()), read_metrics(run)
+    assert metrics["refine"] is True
+    assert metrics["log_likelihood"] == pytest.approx(trained_metrics["log_likelihood"], rel=1e-5)
+    assert metrics["median_error_deg"] != trained_metrics["median_error_deg"]
+
+
+def test_predict_prints_modes_and_writes_the_plot_next_to_the_image(trained, tmp_path):
+    from image2sphere.data.render import render
+
+    ckpt, _, _ = trained
+    image = tmp_path / "cube.png"
+    Image.fromarray(render("cube", haar_rotations(1, seed=4, dtype=torch.float32), 64)[0].numpy()).save(image)
+    proc = _run("src.predict", [f"ckpt_path={ckpt}", f"image={image}", "top_k=3", "level=3",
+                                f"hydra.run.dir={tmp_path / 'run'}"])  # fmt: skip
+    assert "mode 1: mass" in proc.stdout and "YXY angles" in proc.stdout
+    plot = tmp_path / "cube_so3.png"
+    assert plot.read_bytes()[:4] == b"\x89PNG"
+    # the plot is never overwritten; output= chooses another file
+    proc = _run("src.predict", [f"ckpt_path={ckpt}", f"image={image}", "level=3",
+                                f"hydra.run.dir={tmp_path / 'run2'}"], check=False)  # fmt: skip
+    assert proc.returncode != 0 and "choose another output=" in proc.stderr
+    _run("src.predict", [f"ckpt_path={ckpt}", f"image={image}", "level=3", f"output={tmp_path / 'other.png'}",
+                         f"hydra.run.dir={tmp_path / 'run3'}"])  # fmt: skip
+    assert (tmp_path / "other.png").is_file()
+
+
+def test_predictor_on_a_batch_matches_the_trained_module(trained):
+    ckpt, _, _ = trained
+    predictor = Predictor.from_checkpoint(ckpt)
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 256, (40, 50, 3), dtype=np.uint8) for _ in range(3)]
+    dist = predictor(images)
+    assert dist.batch_size == 3 and dist.lmax == predictor.lmax == 2 and predictor.image_size == 32
+    module = build_module(load_checkpoint(ckpt), ckpt)
+    x = predictor.preprocess(images)
+    assert x.shape == (3, 3, 32, 32)
+    with torch.no_grad():
+        torch.testing.assert_close(dist.coeffs, module(x))
+    modes = dist.modes(level=2, k=3)
+    assert len(modes) == 3 and all(len(r) == len(m) <= 3 for r, m in modes)
+    with pytest.raises(ValueError, match=r"uint8 of shape \(H, W, 3\)"):
+        predictor([np.zeros((8, 8, 4), np.uint8)])
+
+
+def test_corrupt_or_foreign_checkpoints_give_clear_errors(trained, tmp_path):
+    ckpt, _, _ = trained
+    data = ckpt.read_bytes()
+    truncated = tmp_path / "truncated.ckpt"
+    truncated.write_bytes(data[: len(data) // 2])
+    with pytest.raises(CheckpointError, match=r"truncated.ckpt.*truncated or corrupt"):
+        load_checkpoint(truncated)
+    with pytest.raises(CheckpointError, match="checkpoint not found"):
+        load_checkpoint(tmp_path / "nowhere.ckpt")
+    foreign = tmp_path / "foreign.ckpt"
+    torch.save({"weights": torch.zeros(2)}, foreign)
+    with pytest.raises(CheckpointError, match="not a Lightning checkpoint"):
+        load_checkpoint(foreign)
+    no_config = tmp_path / "no_config.ckpt"
+    torch.save({"state_dict": {}}, no_config)
+    with pytest.raises(CheckpointError, match="no 'run_config'"):
+        load_checkpoint(no_config)
+    pickled = tmp_path / "pickled.ckpt"
+    torch.save({"state_dict": {}, "run_config": {"model": {}}, "extra": Path("/")}, pickled)
+    with pytest.raises(CheckpointError, match="objects other than tensors"):
+        load_checkpoint(pickled)
+    # a config that describes another network than the weights
+    content = load_checkpoint(ckpt)
+    content["run_config"]["model"]["net"]["lmax"] = 3
+    with pytest.raises(CheckpointError, match=r"does not fit the model .* of another shape"):
+        build_module(content, "edited.ckpt")
+    # and from the command line
+    proc = _run("src.eval", [f"ckpt_path={truncated}", f"hydra.run.dir={tmp_path / 'e'}"], check=False)
+    assert proc.returncode != 0 and "truncated or corrupt" in proc.stderr

@@ -24,7 +24,8 @@ def trained(tmp_path_factory) -> tuple[Path, Path, Path]:
     """(checkpoint, its run directory, the data directory): one epoch of the tiny default run."""
     root = tmp_path_factory.mktemp("tiny")
     run = root / "run"
-    args = ["trainer.max_epochs=1", "logger=none", f"hydra.run.dir={run}"]
+    plots = ["callbacks.so3_plot.every_n_epochs=1", "callbacks.so3_plot.n_images=2", "callbacks.so3_plot.level=2"]
+    args = ["trainer.max_epochs=1", "logger=tensorboard", *plots, f"hydra.run.dir={run}"]
     run_train(args, root / "data", root / "logs")
     return run / "checkpoints" / "last.ckpt", run, root / "data"
 
@@ -35,6 +36,13 @@ def _run(module: str, args: list[str], check: bool = True) -> subprocess.Complet
     if check and proc.returncode != 0:
         raise AssertionError(f"{module} {args} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}")
     return proc
+
+
+def test_training_plots_fixed_validation_images_into_the_run_and_the_logger(trained):
+    _, run, _ = trained
+    assert sorted(p.name for p in (run / "plots").iterdir()) == ["epoch=000_image=0.png", "epoch=000_image=1.png"]
+    events = list((run / "tensorboard").rglob("events.out.tfevents.*"))
+    assert events and max(e.stat().st_size for e in events) > 10_000  # the figures went to TensorBoard too
 
 
 def test_eval_scores_every_test_image_and_reproduces_the_training_metrics(trained, tmp_path):

@@ -122,7 +122,7 @@ def predict(
     output: str | None = None,
     top_k: int = 5,
     level: int = 5,
-    radius_deg: float = 15.0,
+    radius_deg: float = 20.0,
     threshold: float | None = None,
     device: str = "cpu",
 ) -> dict:

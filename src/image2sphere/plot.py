@@ -110,7 +110,7 @@ def plot_so3_distribution(
     ax.tick_params(labelsize=7)
     if title:
         ax.set_title(title, fontsize=9)
-    _colour_wheel(fig, (0.84, 0.62, 0.14, 0.28))
+    _colour_wheel(fig, (0.83, 0.6, 0.12, 0.26))
     fig.text(0.84, 0.5, f"{len(probs)} points" + (f"\np >= {threshold:.2g}" if threshold else ""), fontsize=7)
     return fig
 

@@ -20,6 +20,7 @@ from e3nn import o3
 from image2sphere.so3.grid import (
     check_level,
     so3_grid_size,
+    so3_healpix_grid,
     so3_healpix_index_to_matrix,
     so3_healpix_nearest_index,
 )
@@ -217,53 +218,51 @@ class SO3Distribution:
         self,
         level: int,
         k: int = 5,
-        radius_deg: float = 15.0,
+        radius_deg: float = 20.0,
         threshold: float | None = None,
         refine: bool = False,
+        mass_level: int = 4,
     ) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """Up to ``k`` separate modes per distribution and the probability mass around each.
 
-        Greedy non-maximum suppression on the grid of ``level``: the most probable remaining point
-        is a mode and the points within ``radius_deg`` of it are removed from the search; then every
-        point within ``radius_deg`` of a mode counts for its nearest mode. Only points with
-        ``p_i >= threshold`` take part (default :meth:`default_threshold`: ten times the uniform
-        probability, so that flat regions give no modes, or the top probability when that is lower).
-        The mass of a mode is the probability of the points counted for it; modes are returned in
-        decreasing mass, each as ``(rotations (k', 3, 3), mass (k',))``. With ``refine``
-        each mode is moved by gradient ascent on the Fourier series (as :meth:`mode`).
+        Modes: greedy non-maximum suppression on the grid of ``level``. The most probable remaining
+        point is a mode and the points within ``radius_deg`` of it leave the search. Only points
+        with ``p_i >= threshold`` are candidates (default :meth:`default_threshold`: ten times the
+        uniform probability, so that flat regions give no modes, or the top probability when that
+        is lower). Mass: the probability, on the whole grid of ``min(level, mass_level)``, of the
+        points within ``radius_deg`` of a mode, each counted for its nearest mode. Returned in
+        decreasing mass, each as ``(rotations (k', 3, 3), mass (k',))``. With ``refine`` each mode is
+        moved by gradient ascent on the Fourier series (as :meth:`mode`).
         """
         if isinstance(k, bool) or not isinstance(k, int) or k < 1:
             raise ValueError(f"k must be a positive integer, got {k!r}")
         if not 0 < radius_deg < 180:
             raise ValueError(f"radius_deg must be in (0, 180), got {radius_deg!r}")
         threshold = self.default_threshold(level) if threshold is None else threshold
-        cos_half = math.cos(math.radians(radius_deg))
+        min_trace = 1 + 2 * math.cos(math.radians(radius_deg))  # angle <= r  <=>  trace(Ri^T Rj) >= this
+        coarse = min(check_level(level), check_level(mass_level, "mass_level"))
+        grid = so3_healpix_grid(coarse, dtype=self.coeffs.dtype).reshape(-1, 9).to(self.coeffs.device)  # [N, 9]
         out = []
-        for b, (index, prob) in enumerate(self.points_above(threshold, level)):
-            R = so3_healpix_index_to_matrix(index, level, dtype=self.coeffs.dtype)  # [K, 3, 3]
-            flat = R.reshape(len(R), 9)
-            free = torch.ones(len(R), dtype=torch.bool)
+        for b, (index, _) in enumerate(self.points_above(threshold, level)):
+            flat = so3_healpix_index_to_matrix(index, level, dtype=self.coeffs.dtype).reshape(-1, 9)  # [K, 9]
+            free = torch.ones(len(flat), dtype=torch.bool, device=flat.device)
             chosen = []
             while free.any() and len(chosen) < k:
-                i = int(torch.nonzero(free)[0])  # the most probable free point (sorted by prob)
-                # angle(Ri, Rj) <= r  <=>  trace(Ri^T Rj) >= 1 + 2 cos r
-                free &= flat @ flat[i] < 1 + 2 * cos_half
+                i = int(torch.nonzero(free)[0])  # the most probable free candidate (sorted by prob)
+                free &= flat @ flat[i] < min_trace
                 chosen.append(i)
-            if not chosen:
-                out.append((R.new_zeros(0, 3, 3), prob.new_zeros(0)))
-                continue
-            centres = R[chosen]
-            # each point counts for its nearest mode, when within the radius of it
-            similarity = flat @ flat[chosen].T  # [K, k] traces
-            best, owner = similarity.max(dim=1)
-            within = best >= 1 + 2 * cos_half
-            masses = torch.zeros(len(chosen), dtype=prob.dtype).index_add_(0, owner[within], prob[within])
-            if refine:
+            centres = flat[chosen].reshape(-1, 3, 3)
+            with torch.no_grad():
+                p = torch.softmax(self._evaluator(coarse).logits(self.coeffs[b : b + 1].detach())[0], -1)  # [N]
+                best, owner = (grid @ flat[chosen].T).max(dim=1)  # nearest mode of every grid point
+                within = best >= min_trace
+                mass = torch.zeros(len(chosen), dtype=p.dtype, device=p.device).index_add_(0, owner[within], p[within])
+            if refine and len(chosen):
                 sub = SO3Distribution(self.coeffs[b : b + 1].expand(len(centres), -1), self.lmax)
                 spacing = 2 * math.pi / so3_grid_size(level)[1]
                 centres = sub._refine(centres, 100, spacing / 10)
-            order = torch.argsort(masses, descending=True)
-            out.append((centres[order], masses[order]))
+            order = torch.argsort(mass, descending=True)
+            out.append((centres[order], mass[order]))
         return out
 
     def sample(

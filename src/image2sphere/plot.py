@@ -94,6 +94,8 @@ def plot_so3_distribution(
     if threshold is not None:
         keep = probs >= threshold
         rotations, probs = np.asarray(rotations)[keep], probs[keep]
+    order = np.argsort(probs, kind="stable")  # the most probable points drawn last, on top
+    rotations, probs = np.asarray(rotations)[order], probs[order]
     lon, lat, hue = rotation_to_plot_coords(rotations)
     cmap = colormaps["hsv"]
 

@@ -51,7 +51,6 @@ from pathlib import Path
 import lmdb
 import numpy as np
 import torch
-from scipy.spatial.transform import Rotation
 from torch.utils.data import Dataset
 
 from image2sphere.data.common import (
@@ -66,6 +65,7 @@ from image2sphere.data.common import (
     skip_corrupt,
     stable_seed,
 )
+from image2sphere.so3.rotations import quaternion_to_matrix
 
 __all__ = [
     "MODELNET10_CLASSES",
@@ -116,23 +116,11 @@ def lmdb_dir(root: str | Path, split: str) -> Path:
 
 
 def quaternion_wxyz_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices ``(..., 3, 3)`` (float64) of scalar-first quaternions ``(..., 4)`` = ``(w, x, y, z)``.
-
-    The quaternions are normalised; ``q`` and ``-q`` give the same matrix. Raises ``ValueError`` for
-    a last dimension other than 4 or a quaternion of norm zero (or not finite).
+    """Rotation matrices ``(..., 3, 3)`` (float64) of scalar-first quaternions ``(..., 4)`` = ``(w, x, y, z)``,
+    through :func:`image2sphere.so3.rotations.quaternion_to_matrix` (normalised; ``q`` and ``-q`` give
+    the same matrix; ``ValueError`` for a last dimension other than 4 or a zero or non-finite quaternion).
     """
-    q = np.asarray(q, dtype=np.float64)
-    if q.ndim < 1 or q.shape[-1] != 4:
-        raise ValueError(f"quaternions must have shape (..., 4) in (w, x, y, z) order, got shape {q.shape}")
-    flat = q.reshape(-1, 4)
-    if len(flat) == 0:
-        return np.zeros((*q.shape[:-1], 3, 3))
-    norms = np.linalg.norm(flat, axis=1)
-    if not (np.isfinite(norms).all() and (norms > 0).all()):
-        raise ValueError("quaternions must be finite and non-zero")
-    # scipy's from_quat is scalar-last in every supported version: reorder (w, x, y, z) -> (x, y, z, w).
-    matrices = Rotation.from_quat(flat[:, [1, 2, 3, 0]] / norms[:, None]).as_matrix()
-    return matrices.reshape(*q.shape[:-1], 3, 3)
+    return quaternion_to_matrix(torch.as_tensor(np.asarray(q, dtype=np.float64)), order="wxyz").numpy()
 
 
 def parse_view_id(key: str) -> tuple[str, str]:

@@ -26,7 +26,7 @@ from matplotlib.figure import Figure
 from image2sphere.so3.distribution import SO3Distribution
 from image2sphere.so3.grid import so3_healpix_index_to_matrix
 
-__all__ = ["plot_so3_distribution", "rotation_to_plot_coords", "save_figure"]
+__all__ = ["plot_dataset_item", "plot_so3_distribution", "rotation_to_plot_coords", "save_figure"]
 
 
 def rotation_to_plot_coords(R: torch.Tensor | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -115,6 +115,23 @@ def plot_so3_distribution(
     _colour_wheel(fig, (0.83, 0.6, 0.12, 0.26))
     fig.text(0.84, 0.5, f"{len(probs)} points" + (f"\np >= {threshold:.2g}" if threshold else ""), fontsize=7)
     return fig
+
+
+@torch.no_grad()
+def plot_dataset_item(
+    model, item: dict, level: int, threshold: float | None = None, title: str = "", class_names=()
+) -> Figure:
+    """The predicted distribution of one evaluation item of :mod:`image2sphere.data` (``image``,
+    ``class_index``, ``rotations`` with ``mask``: drawn as rings) by ``model`` (a
+    :class:`~image2sphere.training.PoseEstimationModule`: ``model(images, class_index)`` -> coefficients,
+    ``model.lmax``). The title gets the item's class name appended."""
+    device = next(model.parameters()).device
+    coeffs = model(item["image"][None].to(device), item["class_index"][None].to(device))
+    c = int(item["class_index"])
+    name = class_names[c] if c < len(class_names) else c
+    gt = item["rotations"][item["mask"]]
+    dist = SO3Distribution(coeffs.float(), model.lmax)
+    return plot_so3_distribution(dist, level=level, threshold=threshold, gt_rotations=gt, title=f"{title} ({name})")
 
 
 def save_figure(fig: Figure, path: str | Path, dpi: int = 120) -> Path:

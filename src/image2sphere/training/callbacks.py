@@ -6,7 +6,6 @@ import logging
 from pathlib import Path
 
 import lightning.pytorch as pl
-import torch
 
 __all__ = ["SO3PlotCallback"]
 
@@ -38,7 +37,6 @@ class SO3PlotCallback(pl.Callback):
         self.level = int(level)
         self.threshold = threshold
 
-    @torch.no_grad()
     def on_validation_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         if trainer.sanity_checking or not trainer.is_global_zero or not self.n_images:
             return
@@ -47,8 +45,7 @@ class SO3PlotCallback(pl.Callback):
         dataset = getattr(trainer.datamodule, "data_val", None) if trainer.datamodule is not None else None
         if dataset is None or len(dataset) == 0:
             return
-        from image2sphere.plot import plot_so3_distribution, save_figure
-        from image2sphere.so3.distribution import SO3Distribution
+        from image2sphere.plot import plot_dataset_item, save_figure
 
         folder = Path(trainer.default_root_dir) / "plots"
         names = getattr(pl_module, "class_names", None) or []
@@ -57,18 +54,8 @@ class SO3PlotCallback(pl.Callback):
             item = dataset[i]
             if item is None:
                 continue
-            images = item["image"][None].to(pl_module.device)
-            coeffs = pl_module(images, item["class_index"][None].to(pl_module.device))
-            dist = SO3Distribution(coeffs.float(), pl_module.lmax)
-            c = int(item["class_index"])
-            title = f"epoch {trainer.current_epoch}, validation image {i} ({names[c] if c < len(names) else c})"
-            fig = plot_so3_distribution(
-                dist,
-                level=self.level,
-                threshold=self.threshold,
-                gt_rotations=item["rotations"][item["mask"]],
-                title=title,
-            )
+            title = f"epoch {trainer.current_epoch}, validation image {i}"
+            fig = plot_dataset_item(pl_module, item, self.level, self.threshold, title, names)
             path = save_figure(fig, folder / f"epoch={trainer.current_epoch:03d}_image={i}.png")
             paths.append(path)
             for logger in trainer.loggers:

@@ -16,12 +16,10 @@ import time
 from pathlib import Path
 
 import lightning.pytorch as pl
-import torch
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from image2sphere.so3.distribution import SO3Distribution
 from image2sphere.training.checkpoint import CheckpointError, build_module, load_checkpoint
 from image2sphere.training.pipeline import TABLE_COLUMNS, _finish_loggers, _instantiate_list, format_metrics_table
 
@@ -109,21 +107,14 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     return metrics
 
 
-@torch.no_grad()
 def _plot_test_images(module, datamodule, n: int, level: int, folder: Path) -> None:
-    from image2sphere.plot import plot_so3_distribution, save_figure
+    from image2sphere.plot import plot_dataset_item, save_figure
 
     dataset = datamodule.data_test
-    names = module.class_names or []
     for i in range(min(n, len(dataset))):
         item = dataset[i]
         if item is None:  # a skipped corrupt image
             continue
-        class_index = item["class_index"][None]
-        coeffs = module(item["image"][None].to(module.device), class_index.to(module.device))
-        dist = SO3Distribution(coeffs, module.lmax)
-        gt = item["rotations"][item["mask"]]
-        c = int(item["class_index"])
-        title = f"test image {i} ({names[c] if c < len(names) else c})"
-        save_figure(plot_so3_distribution(dist, level=level, gt_rotations=gt, title=title), folder / f"test_{i}.png")
+        fig = plot_dataset_item(module, item, level, title=f"test image {i}", class_names=module.class_names or [])
+        save_figure(fig, folder / f"test_{i}.png")
     log.info("plots of %d test images in %s", min(n, len(dataset)), folder)

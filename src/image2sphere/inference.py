@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from image2sphere.data.common import load_image, normalize_images
+from image2sphere.data.common import image_to_uint8, load_image, normalize_images
 from image2sphere.so3.distribution import SO3Distribution
 from image2sphere.so3.rotations import matrix_to_angles
 from image2sphere.training.checkpoint import build_module, load_checkpoint
@@ -76,10 +76,7 @@ class Predictor:
                             f"image arrays must be uint8 of shape (H, W, 3), got {array.dtype} {array.shape}"
                         )
                     image = Image.fromarray(array)
-                image = image.convert("RGB")
-                if image.size != (self.image_size, self.image_size):
-                    image = image.resize((self.image_size, self.image_size), Image.Resampling.BILINEAR)
-                pixels = torch.from_numpy(np.asarray(image, dtype=np.uint8).copy())
+                pixels = image_to_uint8(image, self.image_size)
             batch.append(normalize_images(pixels))
         if not batch:
             raise ValueError("no images given")

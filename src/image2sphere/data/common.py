@@ -39,6 +39,7 @@ __all__ = [
     "check_corrupt_policy",
     "collate_skipping_corrupt",
     "decode_image",
+    "image_to_uint8",
     "load_image",
     "missing_dataset_error",
     "single_label_item",
@@ -110,10 +111,16 @@ def load_image(source: str | Path | bytes, image_size: int | None = None, name: 
     """An image (file path or encoded bytes) as uint8 RGB ``(H, W, 3)``, resized (bilinear,
     antialiased) to a square ``image_size`` when given. Errors as :func:`decode_image`.
     """
-    im = decode_image(source, name)
-    if image_size is not None and im.size != (image_size, image_size):
-        im = im.resize((image_size, image_size), Image.Resampling.BILINEAR, reducing_gap=None)
-    return torch.from_numpy(np.asarray(im, dtype=np.uint8).copy())
+    return image_to_uint8(decode_image(source, name), image_size)
+
+
+def image_to_uint8(image: Image.Image, image_size: int | None = None) -> torch.Tensor:
+    """A PIL image as uint8 RGB ``(H, W, 3)``, resized (bilinear, antialiased) to a square ``image_size``."""
+    if image.mode != "RGB":
+        image = image.convert("RGB")
+    if image_size is not None and image.size != (image_size, image_size):
+        image = image.resize((image_size, image_size), Image.Resampling.BILINEAR, reducing_gap=None)
+    return torch.from_numpy(np.asarray(image, dtype=np.uint8).copy())
 
 
 def skip_corrupt(error: CorruptImageError, policy: str, warned: set[str]) -> None:

@@ -87,6 +87,7 @@ __all__ = [
     "pascal3d_rotation",
     "read_pascal3d_annotation",
     "renderforcnn_rotation",
+    "select_objects",
     "verify_pascal3d",
 ]
 
@@ -305,6 +306,29 @@ def list_split_images(root: str | Path, cls: str, split: str) -> list[tuple[Path
     return out
 
 
+def select_objects(
+    annotated: list[dict], cls: str, objects: str, classes: Sequence[str]
+) -> tuple[list[tuple[int, dict]], list[str]]:
+    """The protocol's choice among the objects of one annotation file of folder ``cls``.
+
+    ``objects="first"``: only the first object (with its own class); ``"all"``: the objects of class
+    ``cls``. Of those, the ones that pass :func:`drop_reason` and whose class is in ``classes`` are
+    returned as ``(object index, object)``, with the reasons the others were dropped.
+    """
+    candidates = list(enumerate(annotated))
+    candidates = candidates[:1] if objects == "first" else [(k, o) for k, o in candidates if o["class"] == cls]
+    kept, reasons = [], []
+    for k, obj in candidates:
+        reason = drop_reason(obj)
+        if reason is None and obj["class"] not in classes:
+            reason = "class not selected"
+        if reason is None:
+            kept.append((k, obj))
+        else:
+            reasons.append(reason)
+    return kept, reasons
+
+
 def list_pascal3d_objects(
     root: str | Path, split: str, objects: str = "first", classes: Sequence[str] = PASCAL3D_CLASSES
 ) -> tuple[list[Pascal3DObject], dict[str, int]]:
@@ -322,18 +346,10 @@ def list_pascal3d_objects(
         for image, annotation, _ in list_split_images(root, cls, split):
             if not image.is_file():
                 raise FileNotFoundError(f"image listed for PASCAL3D+ {split} is missing: {image}")
-            candidates = list(enumerate(read_pascal3d_annotation(annotation)))
-            if objects == "first":
-                candidates = candidates[:1]
-            else:
-                candidates = [(k, o) for k, o in candidates if o["class"] == cls]
-            for k, obj in candidates:
-                reason = drop_reason(obj)
-                if reason is None and obj["class"] not in classes:
-                    reason = "class not selected"
-                if reason is not None:
-                    dropped[reason] = dropped.get(reason, 0) + 1
-                    continue
+            chosen, reasons = select_objects(read_pascal3d_annotation(annotation), cls, objects, classes)
+            for reason in reasons:
+                dropped[reason] = dropped.get(reason, 0) + 1
+            for k, obj in chosen:
                 vp = obj["viewpoint"]
                 kept.append(
                     Pascal3DObject(
@@ -713,8 +729,7 @@ def verify_pascal3d(
                 except (FileNotFoundError, ValueError) as e:
                     report.problems.append(str(e))
                     continue
-                objs = objs[:1] if objects == "first" else [o for o in objs if o["class"] == cls]
-                kept += sum(drop_reason(o) is None for o in objs)
+                kept += len(select_objects(objs, cls, objects, classes)[0])
             report.count(f"{split} objects kept", cls, kept)
     if decode:
         for image in tqdm(to_decode, desc="decoding PASCAL3D+ images", disable=not progress):

@@ -168,9 +168,10 @@ class SO3Distribution:
         return (R0 @ rotvec_to_matrix(w.detach())).detach()
 
     def points_above(
-        self, threshold: float, level: int, max_points: int = 2_000_000
+        self, threshold: float | torch.Tensor, level: int, max_points: int = 2_000_000
     ) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        """Grid points whose probability ``p_i`` is at least ``threshold``, per distribution, streamed.
+        """Grid points whose probability ``p_i`` is at least ``threshold`` (a number, or one per
+        distribution ``(B,)``), per distribution, streamed.
 
         A point's probability is at most its pixel's gamma-marginal, so only the fibres of pixels
         whose marginal reaches ``threshold`` are evaluated. Returns, for each distribution, ``(index
@@ -187,12 +188,12 @@ class SO3Distribution:
             pix_lse = ev.pixel_logsumexp(coeffs)  # [B, P]
             log_z = torch.logsumexp(pix_lse, dim=1)  # [B]
             for b in range(self.batch_size):
-                threshold = float(thresholds[b])
-                log_t = math.log(threshold)
+                t = float(thresholds[b])
+                log_t = math.log(t)
                 pix = torch.nonzero(pix_lse[b] - log_z[b] >= log_t).flatten()  # candidate pixels
                 if len(pix) * ev.n_gamma > 4 * max_points:
                     raise ValueError(
-                        f"threshold {threshold:g} keeps too many points at level {level}; raise it (the uniform "
+                        f"threshold {t:g} keeps too many points at level {level}; raise it (the uniform "
                         f"probability is {1 / ev.n_points:.3g})"
                     )
                 log_p = ev.gamma_logits(coeffs[b : b + 1], pix[None])[0] - log_z[b]  # [K, G]
@@ -200,7 +201,7 @@ class SO3Distribution:
                 index = (pix[:, None] * ev.n_gamma + torch.arange(ev.n_gamma, device=pix.device))[keep]
                 prob = log_p[keep].exp()
                 if len(index) > max_points:
-                    raise ValueError(f"{len(index)} points pass threshold {threshold:g} (> max_points={max_points})")
+                    raise ValueError(f"{len(index)} points pass threshold {t:g} (> max_points={max_points})")
                 order = torch.argsort(prob, descending=True)
                 out.append((index[order], prob[order]))
         return out

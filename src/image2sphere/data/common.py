@@ -189,6 +189,17 @@ class VerifyReport:
     def ok(self) -> bool:
         return not (self.unreadable or self.problems or self.mismatches)
 
+    def decode_files(self, paths, desc: str, progress: bool = True) -> None:
+        """Decode every image file of ``paths`` completely (progress bar ``desc``); the ones that do
+        not decode are added to :attr:`unreadable`."""
+        from tqdm import tqdm
+
+        for path in tqdm(paths, desc=desc, disable=not progress):
+            try:
+                decode_image(path)
+            except CorruptImageError:
+                self.unreadable.append(str(path))
+
     def format(self, max_listed: int = 20) -> str:
         lines = [f"{self.dataset} at {self.root}"]
         if self.counts:

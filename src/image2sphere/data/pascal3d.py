@@ -701,8 +701,6 @@ def verify_pascal3d(
     kept by the protocol; annotations that do not parse; images that do not decode (real images
     when ``decode``, synthetic ones too when ``decode_synthetic``).
     """
-    from tqdm import tqdm
-
     root = Path(root)
     classes = check_classes(classes)
     report = VerifyReport("PASCAL3D+", root)
@@ -732,11 +730,7 @@ def verify_pascal3d(
                 kept += len(select_objects(objs, cls, objects, classes)[0])
             report.count(f"{split} objects kept", cls, kept)
     if decode:
-        for image in tqdm(to_decode, desc="decoding PASCAL3D+ images", disable=not progress):
-            try:
-                decode_image(image)
-            except CorruptImageError:
-                report.unreadable.append(str(image))
+        report.decode_files(to_decode, "decoding PASCAL3D+ images", progress)
     if synthetic_root is not None:
         synthetic_root = Path(synthetic_root)
         _check_synthetic_layout(synthetic_root)
@@ -750,11 +744,7 @@ def verify_pascal3d(
                     f"no RenderForCNN images for {cls} ({synthetic_root / RENDERFORCNN_SYNSETS[cls]})"
                 )
         if decode_synthetic:
-            for v in tqdm(views, desc="decoding RenderForCNN images", disable=not progress):
-                try:
-                    decode_image(v.path)
-                except CorruptImageError:
-                    report.unreadable.append(str(v.path))
+            report.decode_files([v.path for v in views], "decoding RenderForCNN images", progress)
     report.notes.append(
         f"objects={objects!r}; 'pascal images' counts VOC-listed images present in Images/{{cls}}_pascal "
         "(VOC lists name every VOC image, so no expected count)"

@@ -408,8 +408,6 @@ def verify_symsol(
     """Check a SYMSOL download: per split and shape, images in ``rotations.npz`` against the public
     release's counts (45,000 train and 5,000 test), every listed image present (and decodable when
     ``decode``), every rendering rotation a rotation matrix."""
-    from tqdm import tqdm
-
     root = Path(root)
     report = VerifyReport("SYMSOL", root)
     if not root.is_dir():
@@ -433,11 +431,7 @@ def verify_symsol(
             missing = [p for p in images if not p.is_file()]
             report.problems += [f"missing image {p}" for p in missing]
             if decode:
-                for p in tqdm(images, desc=f"decoding {split}/{shape}", disable=not progress):
-                    if p.is_file():
-                        try:
-                            load_image(p)
-                        except CorruptImageError:
-                            report.unreadable.append(str(p))
+                present = [p for p in images if p.is_file()]
+                report.decode_files(present, f"decoding {split}/{shape}", progress)
     report.notes.append("the paper mentions 50k training renderings per shape; the public release has 45k + 5k test")
     return report

@@ -1,4 +1,4 @@
-"""ModelNet10-SO(3) (Liao et al. 2019) in its published layout (SPEC section 4).
+"""ModelNet10-SO(3) (Liao et al. 2019) in its published layout (that of ``ModelNet10-SO3.tar.gz``).
 
 Layout
 ------
@@ -8,7 +8,10 @@ is an LMDB environment directory (``data.mdb``, optionally ``lock.mdb``) whose k
 such as ``bathtub_0107.v001`` and whose values are the JPEG bytes of one view (224x224, three equal
 channels), plus ``viewID2quat.pkl``: a dict view id -> quaternion, pickled under Python 2 and read
 with ``encoding="latin1"`` (values may be numpy arrays, tuples or lists). ``root`` is the unpacked
-``ModelNet10-SO3`` folder.
+``ModelNet10-SO3`` folder. The pickle is read with :func:`image2sphere.data.safe_io.load_pickle`,
+which rebuilds numpy arrays and plain containers only (a file asking for anything else is refused,
+nothing of it runs), and an LMDB whose ``data.mdb`` is shorter than its header says is refused when
+opened (:func:`image2sphere.data.safe_io.open_lmdb`) rather than crashing the process later.
 
 A view id is ``{instance}.v{j:03d}`` with ``instance = {class}_{k:04d}``: the class is the text
 before the last ``_`` (``night_stand_0012.v003`` is ``night_stand``), the object instance the text
@@ -18,9 +21,10 @@ Conventions
 -----------
 * Quaternions are stored scalar-first, ``(w, x, y, z)``; they are converted once at load time with
   :func:`quaternion_wxyz_to_matrix` (``q`` and ``-q`` give the same matrix). A stored quaternion
-  whose norm differs from 1 by more than ``1e-3`` is rejected; the others are normalised.
+  whose norm differs from 1 by more than ``1e-3`` (or is NaN or inf) is rejected; the others are
+  normalised.
 * The matrix ``R`` of the stored quaternion is used as is (no transpose): ``x_camera = R @ x_object``,
-  the convention of SPEC section 1.
+  the convention of the whole project.
 * The views of a split are ordered by sorted view id; ``index`` is the row in that order.
 * The LMDB environment is opened lazily, read-only and without locking, once per process (a
   DataLoader worker opens its own), through a per-process registry because ``lmdb`` refuses to open
@@ -42,7 +46,6 @@ from __future__ import annotations
 
 import logging
 import os
-import pickle
 from collections import Counter, defaultdict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -65,6 +68,7 @@ from image2sphere.data.common import (
     skip_corrupt,
     stable_seed,
 )
+from image2sphere.data.safe_io import DatasetFileError, load_pickle, open_lmdb
 from image2sphere.so3.rotations import quaternion_to_matrix
 
 __all__ = [
@@ -107,6 +111,7 @@ GET_FROM = (
     "http://isis-data.science.uva.nl/shuai/datasets/ModelNet10-SO3.tar.gz "
     "(linked from github.com/leoshine/Spherical_Regression)"
 )
+REMEDY = f"re-extract ModelNet10-SO3.tar.gz (re-download it from {GET_FROM} if the archive itself is short)"
 MAX_LISTED = 5  # keys listed per problem in verify; the counts say how many there are in all
 
 
@@ -157,9 +162,7 @@ def _environment(path: Path) -> lmdb.Environment:
         if owner == pid:
             return env
         env.close()
-    if not (Path(key) / "data.mdb").is_file():
-        raise FileNotFoundError(f"LMDB environment not found: {key}/data.mdb")
-    env = lmdb.open(key, subdir=True, readonly=True, lock=False, readahead=False, meminit=False)
+    env = open_lmdb(key, REMEDY)  # refuses a truncated data.mdb (reading one would end in SIGBUS)
     _ENVIRONMENTS[key] = (pid, env)
     return env
 
@@ -189,14 +192,10 @@ def _check_lmdb_not_empty(directory: Path) -> int:
 
 
 def _read_quaternion_dict(pkl: Path) -> dict[str, object]:
-    """The raw ``viewID2quat.pkl`` dict with ``str`` keys; ``ValueError`` naming the file if unreadable."""
-    try:
-        with open(pkl, "rb") as f:
-            raw = pickle.load(f, encoding="latin1")
-    except FileNotFoundError:
-        raise
-    except Exception as e:  # truncated or foreign pickles raise many different types
-        raise ValueError(f"cannot read {pkl} ({type(e).__name__}: {e}): re-download the dataset from {GET_FROM}") from e
+    """The raw ``viewID2quat.pkl`` dict with ``str`` keys; ``ValueError`` naming the file if unreadable
+    (:class:`~image2sphere.data.safe_io.UnsafePickleError` if it asks for anything but numpy arrays and
+    plain containers: nothing of it is run)."""
+    raw = load_pickle(pkl, encoding="latin1", remedy=f"re-download the dataset from {GET_FROM}")
     if not isinstance(raw, dict):
         raise ValueError(f"{pkl} must hold a dict view id -> quaternion (w, x, y, z), got {type(raw).__name__}")
     return {(k.decode("latin1") if isinstance(k, bytes) else str(k)): v for k, v in raw.items()}
@@ -204,7 +203,7 @@ def _read_quaternion_dict(pkl: Path) -> dict[str, object]:
 
 def _quaternion_table(pkl: Path, raw: dict[str, object]) -> tuple[list[str], np.ndarray, list[str]]:
     """Sorted keys, their quaternions ``(N, 4)`` normalised (NaN rows where invalid) and the problems
-    found (wrong shape, norm off by more than :data:`QUATERNION_NORM_TOL`), each naming the key."""
+    found (wrong shape, NaN or inf, norm off by more than :data:`QUATERNION_NORM_TOL`), each naming the key."""
     keys = sorted(raw)
     q: np.ndarray | None
     try:
@@ -225,13 +224,17 @@ def _quaternion_table(pkl: Path, raw: dict[str, object]) -> tuple[list[str], np.
             else:
                 shape_ok[i] = False
                 problems.append(f"{pkl}[{k!r}]: quaternion must be 4 numbers (w, x, y, z), got {raw[k]!r:.80}")
-    norms = np.linalg.norm(q, axis=1)
-    bad = shape_ok & ~(np.abs(norms - 1) <= QUATERNION_NORM_TOL)  # NaN norms count as bad
+    finite = np.isfinite(q).all(axis=1)
+    norms = np.linalg.norm(np.where(finite[:, None], q, 0.0), axis=1)
+    for i in np.flatnonzero(shape_ok & ~finite):
+        problems.append(f"{pkl}[{keys[i]!r}]: quaternion {q[i].tolist()} holds NaN or inf")
+    bad = shape_ok & finite & (np.abs(norms - 1) > QUATERNION_NORM_TOL)  # NaN and inf are caught above
     for i in np.flatnonzero(bad):
         problems.append(
             f"{pkl}[{keys[i]!r}]: quaternion {q[i].tolist()} has norm {norms[i]:.6g}, which differs from 1 by "
             f"more than {QUATERNION_NORM_TOL:g}"
         )
+    bad |= shape_ok & ~finite
     invalid = ~shape_ok | bad
     q[invalid] = np.nan
     q[~invalid] /= norms[~invalid, None]
@@ -261,12 +264,16 @@ def load_modelnet10_labels(directory: str | Path) -> ModelNet10Labels:
 
     Raises ``FileNotFoundError`` for a missing file and ``ValueError`` naming the file (and the key)
     for an unreadable or empty pickle, a view id that does not parse or names an unknown class, and
-    a quaternion of the wrong length or with a norm off by more than ``1e-3``.
+    a quaternion of the wrong length, holding NaN or inf, or with a norm off by more than ``1e-3``; a
+    pickle that asks for anything but numpy arrays and plain containers is refused unrun.
     """
     directory = Path(directory)
     pkl = directory / QUATERNION_FILE
     if not pkl.is_file():
-        raise FileNotFoundError(f"ModelNet10-SO(3) labels not found: {pkl} (expected the layout of SPEC section 4)")
+        raise FileNotFoundError(
+            f"ModelNet10-SO(3) labels not found: {pkl} (expected {QUATERNION_FILE} inside every "
+            "{split}.Rawjpg.lmdb folder)"
+        )
     raw = _read_quaternion_dict(pkl)
     if not raw:
         raise ValueError(f"{pkl} lists no views (empty dict): re-download the dataset from {GET_FROM}")
@@ -612,6 +619,9 @@ def verify_modelnet10(
         try:
             env = _environment(directory)
             entries = int(env.stat()["entries"])
+        except DatasetFileError as e:  # not an LMDB, or truncated
+            report.problems.append(str(e))
+            continue
         except lmdb.Error as e:
             report.problems.append(f"cannot open the LMDB {directory}: {e}")
             continue

@@ -1,8 +1,9 @@
 """Check a downloaded dataset before training: ``python -m image2sphere.data.verify DATASET ROOT``.
 
 Prints, per split and class, the number of images found against the number expected, lists the
-files that do not decode and any other problem (missing files, bad labels), and exits with status 1
-when anything is wrong (0 when the copy is complete and readable).
+files that do not decode and any other problem (missing files, bad labels, truncated archives or
+databases, pickled data asking for more than numpy arrays, which is refused and never run), and exits
+with status 1 when anything is wrong (0 when the copy is complete and readable).
 
 Examples::
 
@@ -19,6 +20,7 @@ import sys
 from pathlib import Path
 
 from image2sphere.data.common import DatasetNotFoundError, VerifyReport
+from image2sphere.data.safe_io import DatasetFileError
 
 DATASETS = ("symsol", "modelnet10", "pascal3d")
 
@@ -53,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         report = verify(args.dataset, args.root, not args.no_decode, args.synthetic, args.decode_synthetic,
                         not args.quiet)  # fmt: skip
-    except DatasetNotFoundError as e:
+    except (DatasetNotFoundError, DatasetFileError) as e:  # the reports collect the rest
         print(f"error: {e}", file=sys.stderr)
         return 1
     print(report.format())

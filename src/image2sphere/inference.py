@@ -6,7 +6,9 @@
 
 Preprocessing is the one the model was trained with: RGB, resized to the run's
 ``dataset.image_size`` (bilinear), ImageNet normalisation. Images are expected to be framed as the
-training images were (e.g. for PASCAL3D+: the object's box, warped or cropped to a square).
+training images were (e.g. for PASCAL3D+: the object's box, warped or cropped to a square). Files and
+PIL images of any mode are converted by :func:`image2sphere.data.common.decode_image`'s rules: 16-bit
+and float images scaled to 8 bits, transparency composited onto black.
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ import torch
 from PIL import Image
 
 from image2sphere.data.common import image_to_uint8, load_image, normalize_images
-from image2sphere.so3.distribution import SO3Distribution
+from image2sphere.so3.distribution import SO3Distribution, check_threshold
+from image2sphere.so3.grid_eval import check_streamed_level
 from image2sphere.so3.rotations import matrix_to_angles
 from image2sphere.training.checkpoint import build_module, load_checkpoint
 
@@ -65,7 +68,7 @@ class Predictor:
         ):
             images = [images]
         batch = []
-        for image in images:
+        for i, image in enumerate(images):
             if isinstance(image, (str, Path)):
                 pixels = load_image(image, self.image_size)
             else:
@@ -76,26 +79,58 @@ class Predictor:
                             f"image arrays must be uint8 of shape (H, W, 3), got {array.dtype} {array.shape}"
                         )
                     image = Image.fromarray(array)
-                pixels = image_to_uint8(image, self.image_size)
+                pixels = image_to_uint8(image, self.image_size, name=f"number {i}")
             batch.append(normalize_images(pixels))
         if not batch:
             raise ValueError("no images given")
         return torch.stack(batch).to(self.device)
 
+    @property
+    def num_classes(self) -> int:
+        """Number of object classes the model takes as input (0: trained without class input)."""
+        return int(getattr(self.net, "num_classes", 0) or 0)
+
+    def check_class_index(self, class_index, batch_size: int | None = None) -> torch.Tensor | None:
+        """``class_index`` as a long tensor ``(batch_size,)`` (``None`` for a model without class
+        input), or ``ValueError``: a model trained without class input takes no ``class_index``; a model
+        with class input needs one integer in ``[0, num_classes)`` (or one per image)."""
+        n = self.num_classes
+        if not n:
+            if class_index is not None:
+                raise ValueError(
+                    f"this model was trained without class input: leave class_index out (null), got {class_index!r}"
+                )
+            return None
+        names = f" ({', '.join(f'{i}={c}' for i, c in enumerate(self.class_names))})" if self.class_names else ""
+        if class_index is None:
+            raise ValueError(f"this model takes the object class as input: pass class_index{names}")
+        try:
+            values = torch.as_tensor(class_index)
+        except (TypeError, ValueError, RuntimeError):
+            values = None
+        if values is None or values.is_floating_point() or values.is_complex() or values.dtype == torch.bool:
+            raise ValueError(f"class_index must be an integer in [0, {n}){names}, got {class_index!r}")
+        values = values.reshape(-1)
+        if batch_size is not None and len(values) not in (1, batch_size):
+            raise ValueError(f"class_index must be one integer or one per image ({batch_size}), got {len(values)}")
+        bad = values[(values < 0) | (values >= n)]
+        if len(bad):
+            raise ValueError(
+                f"class_index {bad[0].item()} is out of range: this model knows the classes 0..{n - 1}{names}"
+            )
+        return values.long().expand(batch_size) if batch_size is not None else values.long()
+
     @torch.no_grad()
     def __call__(self, images: ImageLike | Sequence[ImageLike], class_index=None) -> SO3Distribution:
-        """The predicted distribution for each image (batch in the order given)."""
+        """The predicted distribution for each image (batch in the order given).
+
+        ``class_index``: for models trained with class input, the class of the images (one integer,
+        or one per image); must be left out (``None``) for models trained without.
+        """
+        self.check_class_index(class_index)  # before any image is read
         x = self.preprocess(images)
-        if getattr(self.net, "num_classes", 0):
-            if class_index is None:
-                names = (
-                    f" ({', '.join(f'{i}={n}' for i, n in enumerate(self.class_names))})" if self.class_names else ""
-                )
-                raise ValueError(f"this model takes the object class as input: pass class_index{names}")
-            class_index = torch.as_tensor(class_index, device=self.device).reshape(-1).expand(len(x))
-            coeffs = self.net(x, class_index)
-        else:
-            coeffs = self.net(x)
+        classes = self.check_class_index(class_index, len(x))
+        coeffs = self.net(x) if classes is None else self.net(x, classes.to(self.device))
         return SO3Distribution(coeffs, self.lmax)
 
 
@@ -125,23 +160,40 @@ def predict(
 ) -> dict:
     """Print the top-k modes of the distribution for one image and write its plot.
 
-    The plot goes to ``output`` or, by default, next to the image as ``<image stem>_so3.png``; an
-    existing file is never overwritten. Returns ``{"rotations", "mass", "plot"}``.
+    The plot goes to ``output`` or, by default, next to the image as ``<image stem>_so3.png``, in the
+    format its extension names (``.png``, ``.jpg``, ``.pdf``, ``.svg``, ...); an existing file is never
+    overwritten. ``threshold``: a probability in ``(0, 1]``, or ``None`` for the default (ten times the
+    uniform probability). When no grid point reaches it, a line says so and the plot is drawn empty.
+    Arguments are checked before the checkpoint is loaded. Returns ``{"rotations", "mass", "plot"}``
+    (no modes: ``(0, 3, 3)`` and ``(0,)``).
     """
-    from image2sphere.plot import plot_so3_distribution, save_figure
+    from image2sphere.plot import figure_format, plot_so3_distribution, save_figure
 
     image_path = Path(image)
     if not image_path.is_file():
         raise FileNotFoundError(f"image not found: {image_path}")
     plot_path = Path(output) if output else image_path.with_name(f"{image_path.stem}_so3.png")
+    figure_format(plot_path, "output")
     if plot_path.exists():
         raise FileExistsError(f"{plot_path} exists; choose another output=<path.png>")
+    level = check_streamed_level(level)
+    if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
+        raise ValueError(f"top_k must be a positive integer, got {top_k!r}")
+    if isinstance(radius_deg, bool) or not isinstance(radius_deg, (int, float)) or not 0 < radius_deg < 180:
+        raise ValueError(f"radius_deg must be in (0, 180) degrees, got {radius_deg!r}")
+    if threshold is not None:
+        threshold = float(check_threshold(threshold))
     predictor = Predictor.from_checkpoint(ckpt_path, device)
     dist = predictor(image_path, class_index)
     rotations, mass = dist.modes(level, k=top_k, radius_deg=radius_deg, threshold=threshold)[0]
-    print(f"{image_path}: {len(mass)} modes (level {level}, radius {radius_deg:g} deg), "
-          f"{float(mass.sum()):.3f} of the probability in them")  # fmt: skip
-    print(format_modes(rotations.cpu(), mass.cpu()))
+    if len(mass):
+        print(f"{image_path}: {len(mass)} modes (level {level}, radius {radius_deg:g} deg), "
+              f"{float(mass.sum()):.3f} of the probability in them")  # fmt: skip
+        print(format_modes(rotations.cpu(), mass.cpu()))
+    else:
+        top = float(dist.max_prob(level)[0])
+        print(f"{image_path}: no modes: no grid point reaches threshold={threshold:g} at level {level} (the most "
+              f"probable point has p = {top:.3g}); lower the threshold, or leave it null for the default")  # fmt: skip
     fig = plot_so3_distribution(dist, level=level, threshold=threshold, title=image_path.name)
     save_figure(fig, plot_path)
     print(f"plot: {plot_path}")

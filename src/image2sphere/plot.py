@@ -26,7 +26,22 @@ from matplotlib.figure import Figure
 from image2sphere.so3.distribution import SO3Distribution
 from image2sphere.so3.grid import so3_healpix_index_to_matrix
 
-__all__ = ["plot_dataset_item", "plot_so3_distribution", "rotation_to_plot_coords", "save_figure"]
+__all__ = ["FIGURE_FORMATS", "figure_format", "plot_dataset_item", "plot_so3_distribution", "rotation_to_plot_coords",
+           "save_figure"]  # fmt: skip
+
+# file extensions save_figure writes, and the format each is written in
+FIGURE_FORMATS = {
+    "png": "png",
+    "jpg": "jpg",
+    "jpeg": "jpg",
+    "pdf": "pdf",
+    "svg": "svg",
+    "eps": "eps",
+    "ps": "ps",
+    "tif": "tif",
+    "tiff": "tif",
+    "webp": "webp",
+}
 
 
 def rotation_to_plot_coords(R: torch.Tensor | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -134,10 +149,29 @@ def plot_dataset_item(
     return plot_so3_distribution(dist, level=level, threshold=threshold, gt_rotations=gt, title=f"{title} ({name})")
 
 
+def figure_format(path: str | Path, key: str = "path") -> str:
+    """The format :func:`save_figure` writes ``path`` in, from its extension (case-insensitive);
+    ``ValueError`` naming ``key`` for an extension it does not know. Cheap: call it before computing."""
+    suffix = Path(path).suffix.lower().lstrip(".")
+    if suffix not in FIGURE_FORMATS:
+        known = ", ".join(f".{e}" for e in FIGURE_FORMATS)
+        got = f"extension .{suffix}" if suffix else "no extension"
+        raise ValueError(f"{key}={path} has {got}: a plot is written as one of {known}; choose such a file name")
+    return FIGURE_FORMATS[suffix]
+
+
 def save_figure(fig: Figure, path: str | Path, dpi: int = 120) -> Path:
-    """Write ``fig`` as a PNG; an existing file is never overwritten (``FileExistsError``)."""
+    """Write ``fig`` in the format its extension names (:func:`figure_format`: ``.png``, ``.jpg``,
+    ``.pdf``, ``.svg``, ...). An existing file is never overwritten (``FileExistsError``); a file
+    that fails half-way is removed."""
     path = Path(path)
+    fmt = figure_format(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "xb") as f:
-        fig.savefig(f, format="png", dpi=dpi)
+        try:
+            fig.savefig(f, format=fmt, dpi=dpi)
+        except BaseException:
+            f.close()
+            path.unlink(missing_ok=True)  # only the file this call created
+            raise
     return path

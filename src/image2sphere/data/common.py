@@ -90,34 +90,121 @@ def stable_seed(*parts: object) -> int:
     return int.from_bytes(digest[:8], "little") >> 1
 
 
-def decode_image(source: str | Path | bytes, name: str | None = None) -> Image.Image:
-    """A fully decoded RGB :class:`PIL.Image.Image` from a file path or encoded bytes (grayscale and
-    palette images are converted to three equal channels).
+class _UnreadablePixels(ValueError):
+    """Pixels that decode but cannot be read as an 8-bit image (e.g. a float image outside [0, 1])."""
 
-    Raises ``FileNotFoundError`` for a missing file and :class:`CorruptImageError` naming ``name``
-    (default: the path) for anything that does not decode completely, truncated files included.
+
+_HIGH_DEPTH_MODES = ("I;16", "I;16L", "I;16B", "I;16N", "I", "F")
+_ALPHA_MODES = ("RGBA", "LA", "PA", "RGBa", "La")
+_transparency_reported = False
+
+
+def _gray_to_uint8(image: Image.Image, name: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """A 16-bit, 32-bit integer or float grayscale image as 8-bit gray ``(H, W)``, and an alpha
+    ``(H, W)`` when a ``transparency`` value marks pixels as transparent (else ``None``).
+
+    16-bit samples (``I;16*``, and ``I``, which is how Pillow gives 16-bit PNG and TIFF samples) are
+    divided by 257 (65535 -> 255); float (``F``) samples are intensities in ``[0, 1]``.
     """
-    name = name or str(source)
+    x = np.asarray(image)
+    if image.mode == "F":
+        x = x.astype(np.float64)
+        if x.size and not (np.isfinite(x).all() and x.min() >= 0.0 and x.max() <= 1.0):
+            low, high = (float(np.nanmin(x)), float(np.nanmax(x))) if np.isfinite(x).any() else (np.nan, np.nan)
+            raise _UnreadablePixels(
+                f"image {name} is a float image with values in [{low:g}, {high:g}] (or not finite); float images are "
+                "read as intensities in [0, 1]: convert it to 8 or 16 bits, or scale it to [0, 1]"
+            )
+        gray = np.rint(x * 255.0)
+    else:
+        x = x.astype(np.int64)
+        if x.size and (x.min() < 0 or x.max() > 65535):
+            raise _UnreadablePixels(
+                f"image {name} is a 32-bit integer image with values in [{x.min()}, {x.max()}]; integer images "
+                "are read as 16-bit samples (0..65535): convert it to 8 or 16 bits"
+            )
+        gray = (x + 128) // 257  # round(x / 257)
+    key = image.info.get("transparency")
+    alpha = np.where(x == key, 0, 255).astype(np.uint8) if isinstance(key, (int, float)) else None
+    return gray.astype(np.uint8), alpha
+
+
+def _to_rgb(image: Image.Image, name: str) -> Image.Image:
+    """``image`` as 8-bit RGB by the rules of :func:`decode_image` (loads every pixel)."""
+    global _transparency_reported
+    alpha = None
+    if image.mode in _HIGH_DEPTH_MODES:
+        gray, alpha = _gray_to_uint8(image, name)
+        rgb = np.repeat(gray[..., None], 3, axis=-1)
+    elif image.mode in _ALPHA_MODES or "transparency" in image.info:
+        rgba = np.asarray(image.convert("RGBA"))
+        rgb, alpha = rgba[..., :3], rgba[..., 3]
+    elif image.mode == "RGB":
+        return image.copy()  # a copy: the caller may close the file behind ``image``
+    else:
+        return image.convert("RGB")
+    if alpha is not None and (alpha < 255).any():
+        # composite onto black: out = rgb * alpha / 255, rounded
+        rgb = ((rgb.astype(np.uint32) * alpha[..., None].astype(np.uint32) + 127) // 255).astype(np.uint8)
+        if not _transparency_reported:
+            _transparency_reported = True
+            log.warning(
+                "image %s has transparent pixels: composited onto black, the background of the rendered "
+                "training images (reported once; later images are composited the same way)",
+                name,
+            )
+    return Image.fromarray(np.ascontiguousarray(rgb, dtype=np.uint8))
+
+
+def decode_image(source: str | Path | bytes, name: str | None = None) -> Image.Image:
+    """A fully decoded 8-bit RGB :class:`PIL.Image.Image` from a file path or encoded bytes.
+
+    Conversion rules (shared by datasets and prediction, see :func:`image_to_uint8`):
+
+    * grayscale and palette images become three equal channels;
+    * 16-bit samples (modes ``I;16*``, and ``I``, Pillow's mode for 16-bit PNG and TIFF) are scaled to
+      8 bits (divided by 257); ``I`` values outside ``0..65535`` are refused; float (``F``) samples
+      are intensities in ``[0, 1]`` (anything else is refused);
+    * transparency (an alpha channel: ``RGBA``, ``LA``, ``PA``; or a ``transparency`` colour, e.g. of
+      palette images) is composited onto a **black** background, ``rgb * alpha / 255``: the
+      background of the rendered training images (:mod:`image2sphere.data.render`). A warning is
+      logged the first time an image with transparent pixels is met.
+
+    Raises ``FileNotFoundError`` for a missing file, :class:`CorruptImageError` naming ``name``
+    (default: the path) for anything that does not decode completely, truncated files included, and
+    ``ValueError`` naming it for pixel values the rules above refuse.
+    """
+    name = name or (f"({len(source)} bytes in memory)" if isinstance(source, bytes) else str(source))
     try:
         with Image.open(io.BytesIO(source) if isinstance(source, bytes) else Path(source)) as im:
-            return im.convert("RGB")  # convert() loads every pixel, so truncation is detected here
+            im.load()  # every pixel, so truncation is detected here
+            return _to_rgb(im, name)
     except FileNotFoundError:
         raise FileNotFoundError(f"image file not found: {name}") from None
+    except _UnreadablePixels as e:
+        raise ValueError(str(e)) from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as e:
         raise CorruptImageError(name, str(e)) from e
 
 
 def load_image(source: str | Path | bytes, image_size: int | None = None, name: str | None = None) -> torch.Tensor:
     """An image (file path or encoded bytes) as uint8 RGB ``(H, W, 3)``, resized (bilinear,
-    antialiased) to a square ``image_size`` when given. Errors as :func:`decode_image`.
+    antialiased) to a square ``image_size`` when given. Conversion and errors as :func:`decode_image`.
     """
     return image_to_uint8(decode_image(source, name), image_size)
 
 
-def image_to_uint8(image: Image.Image, image_size: int | None = None) -> torch.Tensor:
-    """A PIL image as uint8 RGB ``(H, W, 3)``, resized (bilinear, antialiased) to a square ``image_size``."""
-    if image.mode != "RGB":
-        image = image.convert("RGB")
+def image_to_uint8(image: Image.Image, image_size: int | None = None, name: str | None = None) -> torch.Tensor:
+    """A PIL image as uint8 RGB ``(H, W, 3)``, resized (bilinear, antialiased) to a square ``image_size``.
+
+    Any mode is converted by the rules of :func:`decode_image` (16-bit and float scaling,
+    transparency composited onto black); ``name`` names the image in messages.
+    """
+    if image.mode != "RGB" or "transparency" in image.info:
+        try:
+            image = _to_rgb(image, name or "(in memory)")
+        except _UnreadablePixels as e:
+            raise ValueError(str(e)) from None
     if image_size is not None and image.size != (image_size, image_size):
         image = image.resize((image_size, image_size), Image.Resampling.BILINEAR, reducing_gap=None)
     return torch.from_numpy(np.asarray(image, dtype=np.uint8).copy())
@@ -235,11 +322,13 @@ class EpochShuffleSampler(Sampler[int]):
     the epoch too, so its own per-item randomness can follow the same rule.
     """
 
-    def __init__(self, n: int, seed: int, dataset: object | None = None):
+    def __init__(self, n: int, seed: int, dataset: object | None = None, resume: tuple[int, int] | None = None):
         self.n = int(n)
         self.seed = int(seed)
         self.epoch = 0
         self.dataset = dataset
+        # (epoch, k): in that epoch, leave out the first k indices (already trained on before a resume)
+        self.resume = resume
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
@@ -248,7 +337,10 @@ class EpochShuffleSampler(Sampler[int]):
 
     def __iter__(self) -> Iterator[int]:
         g = torch.Generator().manual_seed(stable_seed("shuffle", self.seed, self.epoch))
-        return iter(torch.randperm(self.n, generator=g).tolist())
+        order = torch.randperm(self.n, generator=g).tolist()
+        if self.resume is not None and self.resume[0] == self.epoch:
+            order = order[self.resume[1] :]
+        return iter(order)
 
     def __len__(self) -> int:
         return self.n
@@ -263,11 +355,19 @@ class PoseDataModule(pl.LightningDataModule):
     ``batch_size``, ``num_workers``, ``pin_memory``, ``seed`` and ``class_names`` in ``__init__``.
     """
 
+    _resume: tuple[int, int] | None = None
+
+    def resume_within_epoch(self, epoch: int, batches_done: int) -> None:
+        """Start training in ``epoch`` after its first ``batches_done`` batches (a checkpoint written
+        mid-epoch, see :mod:`image2sphere.training.checkpointing`); later epochs are whole."""
+        self._resume = (int(epoch), int(batches_done) * int(self.batch_size))
+
     def _loader(self, dataset, train: bool) -> DataLoader:
+        sampler = EpochShuffleSampler(len(dataset), self.seed, dataset, self._resume) if train else None
         return DataLoader(
             dataset,
             batch_size=self.batch_size,
-            sampler=EpochShuffleSampler(len(dataset), self.seed, dataset) if train else None,
+            sampler=sampler,
             shuffle=False,
             drop_last=False,
             num_workers=self.num_workers,

@@ -5,9 +5,11 @@ column-vector rotation matrices, e3nn YXY Euler angles, the flat Wigner layout f
 and a pixel-major flat order (``p * n_gamma + k``) for the SO(3) HEALPix grid.
 """
 
-from image2sphere.so3.distribution import LOG_UNIFORM_DENSITY, SO3Distribution
+from image2sphere.so3.distribution import LOG_UNIFORM_DENSITY, SO3Distribution, check_threshold
 from image2sphere.so3.grid import (
+    MAX_DENSE_LEVEL,
     MAX_LEVEL,
+    MAX_STREAMED_LEVEL,
     check_grid_index,
     check_level,
     gamma_major_to_pixel_major,
@@ -20,7 +22,7 @@ from image2sphere.so3.grid import (
     so3_healpix_nearest_index,
     so3_near_identity_grid,
 )
-from image2sphere.so3.grid_eval import HealpixGridEvaluator, dense_grid_logits, get_grid_evaluator
+from image2sphere.so3.grid_eval import HealpixGridEvaluator, check_streamed_level, dense_grid_logits, get_grid_evaluator
 from image2sphere.so3.rotations import (
     angles_to_matrix,
     check_rotation_matrix,
@@ -48,7 +50,9 @@ from image2sphere.so3.wigner import (
 
 __all__ = [
     "LOG_UNIFORM_DENSITY",
+    "MAX_DENSE_LEVEL",
     "MAX_LEVEL",
+    "MAX_STREAMED_LEVEL",
     "HealpixGridEvaluator",
     "SO3Distribution",
     "angles_to_matrix",
@@ -56,6 +60,8 @@ __all__ = [
     "check_level",
     "check_lmax",
     "check_rotation_matrix",
+    "check_streamed_level",
+    "check_threshold",
     "dense_grid_logits",
     "flat_wigner",
     "flat_wigner_from_angles",

@@ -13,32 +13,54 @@ Conventions (SPEC section 1)
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 from e3nn import o3
 
 from image2sphere.so3.grid import (
+    MAX_DENSE_LEVEL,
     check_level,
     so3_grid_size,
     so3_healpix_grid,
     so3_healpix_index_to_matrix,
     so3_healpix_nearest_index,
 )
-from image2sphere.so3.grid_eval import get_grid_evaluator
+from image2sphere.so3.grid_eval import MAX_OUTPUT_BYTES, check_streamed_level, get_grid_evaluator
 from image2sphere.so3.rotations import check_rotation_matrix, matrix_to_angles, rotvec_to_matrix
 from image2sphere.so3.wigner import check_lmax, default_dtype, flat_wigner, n_so3_coeffs, so3_blocks, wigner_D
 
-__all__ = ["LOG_UNIFORM_DENSITY", "SO3Distribution"]
+__all__ = ["LOG_UNIFORM_DENSITY", "SO3Distribution", "check_threshold"]
 
 LOG_UNIFORM_DENSITY = -math.log(math.pi**2)  # -2.2894
+
+
+def check_threshold(threshold, name: str = "threshold") -> torch.Tensor:
+    """A probability threshold (a number, or a tensor of them) as a float64 tensor; ``ValueError``
+    unless every value is a probability in ``(0, 1]``."""
+    message = f"{name} must be > 0 and <= 1 (a probability in (0, 1]), got {{!r}}"
+    if isinstance(threshold, (bool, str)) or threshold is None:
+        raise ValueError(message.format(threshold))
+    try:
+        values = torch.as_tensor(threshold, dtype=torch.float64).detach().cpu()
+    except (TypeError, ValueError, RuntimeError):
+        raise ValueError(message.format(threshold)) from None
+    if not ((values > 0) & (values <= 1)).all():  # NaN fails both comparisons
+        raise ValueError(message.format(threshold if values.numel() == 1 else values.tolist()))
+    return values
 
 
 class SO3Distribution:
     """A batch of distributions over SO(3) given by Fourier coefficients.
 
     Args:
-        coeffs: ``(B, n_so3_coeffs(lmax))`` in the flat Wigner layout (the network's output).
+        coeffs: ``(B, n_so3_coeffs(lmax))`` in the flat Wigner layout (the network's output); finite.
         lmax: the band limit.
+
+    Methods that evaluate the signal on a grid take its ``level``, checked before anything is built:
+    ``0..MAX_STREAMED_LEVEL`` (7) for the streamed methods, ``0..MAX_DENSE_LEVEL`` (6) where a value
+    per grid point is returned (:meth:`grid_logits`, :meth:`log_prob_grid`) or gathered
+    (``mass_level`` of :meth:`modes`).
     """
 
     def __init__(self, coeffs: torch.Tensor, lmax: int):
@@ -49,6 +71,13 @@ class SO3Distribution:
             raise ValueError(f"coeffs must have shape (batch, {n}) for lmax={self.lmax}, got {shape}")
         if not coeffs.is_floating_point():
             raise ValueError(f"coeffs must be floating point, got {coeffs.dtype}")
+        if not torch.isfinite(coeffs).all():
+            bad = torch.nonzero(~torch.isfinite(coeffs.detach()).all(dim=1)).flatten().tolist()
+            listed = ", ".join(map(str, bad[:10])) + (", ..." if len(bad) > 10 else "")
+            raise ValueError(
+                f"coeffs contain NaN or infinite values in {len(bad)} of {coeffs.shape[0]} distributions "
+                f"(batch entries {listed}); the network's output is not finite: check its input and weights"
+            )
         self.coeffs = coeffs
 
     @property
@@ -56,7 +85,7 @@ class SO3Distribution:
         return self.coeffs.shape[0]
 
     def _evaluator(self, level: int):
-        return get_grid_evaluator(self.lmax, check_level(level), self.coeffs.dtype, self.coeffs.device)
+        return get_grid_evaluator(self.lmax, check_streamed_level(level), self.coeffs.dtype, self.coeffs.device)
 
     def _check_query(self, rotations: torch.Tensor) -> torch.Tensor:
         check_rotation_matrix(rotations, "rotations")
@@ -79,7 +108,20 @@ class SO3Distribution:
         return torch.einsum("bkn,bn->bk", D, self.coeffs)
 
     def grid_logits(self, level: int) -> torch.Tensor:
-        """Signal on the whole grid of ``level``: ``(B, 72 * 8**level)``, pixel-major."""
+        """Signal on the whole grid of ``level``: ``(B, 72 * 8**level)``, pixel-major.
+
+        Levels up to :data:`~image2sphere.so3.grid.MAX_DENSE_LEVEL`, and at most
+        :data:`~image2sphere.so3.grid_eval.MAX_OUTPUT_BYTES` of output (checked before any work).
+        """
+        level = check_level(level, max_level=MAX_DENSE_LEVEL, purpose="full-grid logits",
+                            bytes_per_point=self.coeffs.element_size())  # fmt: skip
+        nbytes = self.batch_size * math.prod(so3_grid_size(level)) * self.coeffs.element_size()
+        if nbytes > MAX_OUTPUT_BYTES:
+            raise ValueError(
+                f"full-grid logits for a batch of {self.batch_size} at level {level} need {nbytes / 2**30:.1f} GiB "
+                f"(> {MAX_OUTPUT_BYTES / 2**30:.1f} GiB); use a smaller batch, a lower level or the streamed "
+                "methods (log_normalizer, log_prob_at_index, points_above)"
+            )
         return self._evaluator(level).logits(self.coeffs)
 
     def log_prob_grid(self, level: int) -> torch.Tensor:
@@ -111,6 +153,7 @@ class SO3Distribution:
         Read at the grid point nearest each rotation: ``log(p_nearest * N / pi^2)``. ``log_normalizer``
         as in :meth:`log_prob_at_index`.
         """
+        level = check_streamed_level(level)
         rotations = self._check_query(rotations)
         index = so3_healpix_nearest_index(rotations, level).to(self.coeffs.device)  # [(B,) K]
         n_points = math.prod(so3_grid_size(level))
@@ -123,17 +166,24 @@ class SO3Distribution:
         With ``refine=True`` the rotation ``R0 @ exp(w)`` is moved by gradient ascent on the
         band-limited signal itself (Adam on ``w``, learning rate decayed linearly over ``steps``;
         default ``lr`` is a tenth of the grid spacing), so the estimate is no longer tied to the grid.
+        ``steps`` is an integer >= 0 (0: the grid argmax is returned unrefined); ``lr`` a finite number > 0.
         """
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 0:
+            raise ValueError(f"steps must be an integer >= 0 (0: no refinement), got {steps!r}")
+        if lr is not None and (isinstance(lr, bool) or not isinstance(lr, numbers.Real) or not 0 < lr < math.inf):
+            raise ValueError(f"lr must be a finite number > 0 (or None: a tenth of the grid spacing), got {lr!r}")
         ev = self._evaluator(level)
         with torch.no_grad():
             _, _, index = ev.logsumexp_and_max(self.coeffs.detach())
         R0 = so3_healpix_index_to_matrix(index, level, dtype=self.coeffs.dtype)
-        if not refine:
+        if not refine or steps == 0:
             return R0
         spacing = 2 * math.pi / so3_grid_size(level)[1]
         return self._refine(R0, steps, lr if lr is not None else spacing / 10)
 
     def _refine(self, R0: torch.Tensor, steps: int, lr: float) -> torch.Tensor:
+        if steps == 0:  # nothing to do (and the learning-rate schedule divides by steps)
+            return R0
         # Gradient ascent needs autograd even when called under torch.inference_mode (Lightning's
         # test loop): leave it, and copy the inputs out of inference tensors.
         with torch.inference_mode(False):
@@ -176,11 +226,15 @@ class SO3Distribution:
         A point's probability is at most its pixel's gamma-marginal, so only the fibres of pixels
         whose marginal reaches ``threshold`` are evaluated. Returns, for each distribution, ``(index
         (K,), prob (K,))`` in decreasing probability (pixel-major grid indices of ``level``). Raises
-        ``ValueError`` when more than ``max_points`` points pass (raise the threshold).
+        ``ValueError`` when more than ``max_points`` points pass (raise the threshold). A threshold
+        must be a probability in ``(0, 1]``; when no point reaches it the entry is empty.
         """
-        thresholds = torch.as_tensor(threshold, dtype=torch.float64).reshape(-1).expand(self.batch_size)
-        if not (thresholds > 0).all():
-            raise ValueError(f"threshold must be > 0, got {threshold!r}")
+        thresholds = check_threshold(threshold).reshape(-1)
+        if thresholds.numel() not in (1, self.batch_size):
+            raise ValueError(
+                f"threshold must be a number or one per distribution ({self.batch_size},), got {thresholds.numel()}"
+            )
+        thresholds = thresholds.expand(self.batch_size)
         ev = self._evaluator(level)
         out = []
         with torch.no_grad():
@@ -206,14 +260,18 @@ class SO3Distribution:
                 out.append((index[order], prob[order]))
         return out
 
-    def default_threshold(self, level: int) -> torch.Tensor:
-        """``min(10 / N, max_i p_i)`` per distribution ``(B,)``: ten times the uniform probability,
-        lowered to the top probability for flat distributions so that the top point always passes."""
+    def max_prob(self, level: int) -> torch.Tensor:
+        """The largest grid probability ``max_i p_i`` per distribution, ``(B,)`` float64 on the CPU."""
         ev = self._evaluator(level)
         with torch.no_grad():
             lse, top, _ = ev.logsumexp_and_max(self.coeffs.detach())
-        p_max = (top - lse).double().exp().cpu()
-        return torch.clamp(p_max * (1 - 1e-6), max=10.0 / ev.n_points)
+        return (top - lse).double().exp().cpu()
+
+    def default_threshold(self, level: int) -> torch.Tensor:
+        """``min(10 / N, max_i p_i)`` per distribution ``(B,)``: ten times the uniform probability,
+        lowered to the top probability for flat distributions so that the top point always passes."""
+        n_points = math.prod(so3_grid_size(check_streamed_level(level)))
+        return torch.clamp(self.max_prob(level) * (1 - 1e-6), max=10.0 / n_points)
 
     def modes(
         self,
@@ -234,14 +292,21 @@ class SO3Distribution:
         points within ``radius_deg`` of a mode, each counted for its nearest mode. Returned in
         decreasing mass, each as ``(rotations (k', 3, 3), mass (k',))``. With ``refine`` each mode is
         moved by gradient ascent on the Fourier series (as :meth:`mode`).
+
+        An explicit ``threshold`` must be a probability in ``(0, 1]``. When no grid point of a
+        distribution reaches it, that distribution has no modes: its entry is ``(rotations (0, 3, 3),
+        mass (0,))`` (compare with :meth:`max_prob`). ``mass_level`` is at most ``MAX_DENSE_LEVEL``.
         """
+        level = check_streamed_level(level)
+        coarse = min(level, check_level(mass_level, "mass_level"))
+        check_level(coarse, "mass_level", max_level=MAX_DENSE_LEVEL, purpose="the probability mass of modes",
+                    bytes_per_point=40)  # fmt: skip
         if isinstance(k, bool) or not isinstance(k, int) or k < 1:
             raise ValueError(f"k must be a positive integer, got {k!r}")
-        if not 0 < radius_deg < 180:
+        if isinstance(radius_deg, bool) or not isinstance(radius_deg, numbers.Real) or not 0 < radius_deg < 180:
             raise ValueError(f"radius_deg must be in (0, 180), got {radius_deg!r}")
-        threshold = self.default_threshold(level) if threshold is None else threshold
+        threshold = self.default_threshold(level) if threshold is None else check_threshold(threshold)
         min_trace = 1 + 2 * math.cos(math.radians(radius_deg))  # angle <= r  <=>  trace(Ri^T Rj) >= this
-        coarse = min(check_level(level), check_level(mass_level, "mass_level"))
         grid = so3_healpix_grid(coarse, dtype=self.coeffs.dtype).reshape(-1, 9).to(self.coeffs.device)  # [N, 9]
         out = []
         for b, (index, _) in enumerate(self.points_above(threshold, level)):
@@ -252,6 +317,9 @@ class SO3Distribution:
                 i = int(torch.nonzero(free)[0])  # the most probable free candidate (sorted by prob)
                 free &= flat @ flat[i] < min_trace
                 chosen.append(i)
+            if not chosen:  # no grid point reaches the threshold: no modes
+                out.append((flat.new_empty(0, 3, 3), flat.new_empty(0)))
+                continue
             centres = flat[chosen].reshape(-1, 3, 3)
             with torch.no_grad():
                 p = torch.softmax(self._evaluator(coarse).logits(self.coeffs[b : b + 1].detach())[0], -1)  # [N]

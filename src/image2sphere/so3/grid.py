@@ -18,6 +18,7 @@ Conventions (SPEC section 1)
 from __future__ import annotations
 
 import math
+import numbers
 
 import healpy
 import numpy as np
@@ -26,7 +27,9 @@ import torch
 from image2sphere.so3.rotations import angles_to_matrix, check_rotation_matrix, rotvec_to_matrix
 
 __all__ = [
+    "MAX_DENSE_LEVEL",
     "MAX_LEVEL",
+    "MAX_STREAMED_LEVEL",
     "check_grid_index",
     "check_level",
     "gamma_major_to_pixel_major",
@@ -40,13 +43,50 @@ __all__ = [
     "so3_near_identity_grid",
 ]
 
-MAX_LEVEL = 10  # nside 1024: 7.7e10 rotations; beyond that nothing here is practical
+MAX_LEVEL = 10  # nside 1024: 7.7e10 rotations; the ceiling of index arithmetic (sizes, index <-> rotation)
+MAX_STREAMED_LEVEL = 7  # streamed evaluation on the grid (151M points; operator 0.68 GB for lmax 6)
+MAX_DENSE_LEVEL = 6  # anything holding one value or matrix per grid point (18.9M points)
 
 
-def check_level(level, name: str = "level") -> int:
-    """Return ``level`` as an int, or raise ``ValueError`` if it is not in ``0..MAX_LEVEL``."""
-    if isinstance(level, bool) or not isinstance(level, int) or not 0 <= level <= MAX_LEVEL:
-        raise ValueError(f"{name} must be an integer in 0..{MAX_LEVEL}, got {level!r}")
+def _format_bytes(nbytes: float) -> str:
+    for unit, size in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if nbytes >= size:
+            return f"{nbytes / size:.3g} {unit}"
+    return f"{nbytes:.0f} bytes"
+
+
+def check_level(
+    level,
+    name: str = "level",
+    max_level: int = MAX_LEVEL,
+    purpose: str | None = None,
+    bytes_per_point: float = 0.0,
+) -> int:
+    """Return ``level`` as an int, or raise ``ValueError`` unless it is an integer in ``0..max_level``.
+
+    Every public function that takes a grid level calls this first, before it allocates or builds
+    anything, with the finest level its work allows: :data:`MAX_LEVEL` for index arithmetic,
+    :data:`MAX_STREAMED_LEVEL` for streamed evaluation, :data:`MAX_DENSE_LEVEL` for anything that
+    holds one value per grid point. A level that is too fine is refused with the size of its grid
+    (``72 * 8**level`` points, times ``bytes_per_point`` bytes) and the levels ``purpose`` allows.
+    """
+    if isinstance(level, bool) or not isinstance(level, numbers.Integral) or level < 0:
+        raise ValueError(f"{name} must be an integer in 0..{max_level}, got {level!r}")
+    level = int(level)
+    if level > max_level:
+        detail = f" for {purpose}" if purpose else ""
+        if purpose and level <= 30:  # the size of what would have been built (beyond 30 it says nothing more)
+            n_points = 72 * 8**level
+            cost = (
+                f", {_format_bytes(n_points * bytes_per_point)} at {bytes_per_point:g} bytes each"
+                if bytes_per_point
+                else ""
+            )
+            detail += f": its SO(3) grid has {n_points:,} points{cost}"
+            detail += f"; the allowed levels are 0..{max_level} (level {max_level}: {72 * 8**max_level:,} points)"
+        else:
+            detail += f"; the allowed levels are 0..{max_level}"
+        raise ValueError(f"{name}={level} is too fine{detail}")
     return level
 
 
@@ -75,7 +115,11 @@ def s2_healpix_grid(
 def so3_healpix_grid_angles(
     level: int, dtype: torch.dtype = torch.float32
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """YXY angles ``(alpha, beta, gamma)`` of the SO(3) grid, each ``(N,)``, pixel-major order."""
+    """YXY angles ``(alpha, beta, gamma)`` of the SO(3) grid, each ``(N,)``, pixel-major order.
+
+    Levels up to :data:`MAX_DENSE_LEVEL` (the angles are built in float64).
+    """
+    check_level(level, max_level=MAX_DENSE_LEVEL, purpose="the dense grid of angles", bytes_per_point=24)
     n_pix, n_gamma = so3_grid_size(level)
     alpha, beta = s2_healpix_grid(level, dtype=torch.float64)
     gamma = torch.arange(n_gamma, dtype=torch.float64) * (2 * math.pi / n_gamma)
@@ -86,7 +130,12 @@ def so3_healpix_grid_angles(
 
 
 def so3_healpix_grid(level: int, dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """Rotations ``(72 * 8**level, 3, 3)`` of the SO(3) HEALPix grid, pixel-major order."""
+    """Rotations ``(72 * 8**level, 3, 3)`` of the SO(3) HEALPix grid, pixel-major order.
+
+    Levels up to :data:`MAX_DENSE_LEVEL` (level 6: 1.4 GB of float64 matrices while they are built);
+    finer grids are only ever evaluated streamed (:mod:`image2sphere.so3.grid_eval`).
+    """
+    check_level(level, max_level=MAX_DENSE_LEVEL, purpose="a dense grid of rotation matrices", bytes_per_point=72)
     alpha, beta, gamma = so3_healpix_grid_angles(level, dtype=torch.float64)
     return angles_to_matrix(alpha, beta, gamma).to(dtype)
 
@@ -120,10 +169,11 @@ def so3_near_identity_grid(
     the angles ``max_angle * k / n_angles``, ``k = 1..n_angles``. Used as the support of locally
     supported SO(3) filters (22.5 degrees in the paper).
     """
+    check_level(axis_level, "axis_level", max_level=MAX_DENSE_LEVEL)
     if not 0 < max_angle <= math.pi:
         raise ValueError(f"max_angle must be in (0, pi], got {max_angle!r}")
-    if n_angles < 1:
-        raise ValueError(f"n_angles must be >= 1, got {n_angles!r}")
+    if isinstance(n_angles, bool) or not isinstance(n_angles, int) or n_angles < 1:
+        raise ValueError(f"n_angles must be an integer >= 1, got {n_angles!r}")
     alpha, beta = s2_healpix_grid(axis_level, dtype=torch.float64)
     axes = torch.stack(  # [A, 3], e3nn's angles_to_xyz
         [torch.sin(beta) * torch.sin(alpha), torch.cos(beta), torch.sin(beta) * torch.cos(alpha)], dim=-1
@@ -172,8 +222,8 @@ def so3_healpix_nearest_index(rotations: torch.Tensor, level: int, chunk_size: i
     pixel the best gamma is found in closed form (the trace is a sinusoid in gamma), and the two
     grid gammas around it are scored. Tests compare against a brute-force search.
     """
+    nside = 2 ** check_level(level)  # first: nothing is built for a bad level
     check_rotation_matrix(rotations)
-    nside = 2 ** check_level(level)
     n_pix, n_gamma = so3_grid_size(level)
     frames = _pixel_frame_matrices(level)  # [P, 3, 3]
     batch_shape = rotations.shape[:-2]

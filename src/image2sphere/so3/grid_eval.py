@@ -34,7 +34,14 @@ from functools import lru_cache
 
 import torch
 
-from image2sphere.so3.grid import check_level, s2_healpix_grid, so3_grid_size, so3_healpix_grid_angles
+from image2sphere.so3.grid import (
+    MAX_DENSE_LEVEL,
+    MAX_STREAMED_LEVEL,
+    check_level,
+    s2_healpix_grid,
+    so3_grid_size,
+    so3_healpix_grid_angles,
+)
 from image2sphere.so3.wigner import (
     check_lmax,
     flat_wigner_from_angles,
@@ -49,6 +56,7 @@ __all__ = [
     "MAX_OPERATOR_BYTES",
     "MAX_OUTPUT_BYTES",
     "HealpixGridEvaluator",
+    "check_streamed_level",
     "dense_grid_logits",
     "get_grid_evaluator",
 ]
@@ -63,11 +71,18 @@ def _operator_numel(lmax: int, n_pix: int) -> int:
     return (2 * n_so3_coeffs(lmax) - n_s2_coeffs(lmax)) * n_pix
 
 
+def check_streamed_level(level, name: str = "level") -> int:
+    """:func:`~image2sphere.so3.grid.check_level` for streamed evaluation: levels ``0..MAX_STREAMED_LEVEL``."""
+    return check_level(level, name, max_level=MAX_STREAMED_LEVEL, purpose="streamed evaluation", bytes_per_point=4)
+
+
 class HealpixGridEvaluator:
     """Evaluates batches of SO(3) signals (flat Wigner layout) on the level-``level`` HEALPix grid.
 
     Build it with :func:`get_grid_evaluator` (cached per lmax, level, dtype, device). All methods
-    take ``coeffs`` of shape ``(B, n_so3_coeffs(lmax))`` and are differentiable.
+    take ``coeffs`` of shape ``(B, n_so3_coeffs(lmax))`` and are differentiable. Levels up to
+    :data:`~image2sphere.so3.grid.MAX_STREAMED_LEVEL`; the level and the operator size are checked
+    before anything is built.
     """
 
     def __init__(
@@ -79,7 +94,7 @@ class HealpixGridEvaluator:
         max_operator_bytes: int = MAX_OPERATOR_BYTES,
     ):
         self.lmax = check_lmax(lmax)
-        self.level = check_level(level)
+        self.level = check_streamed_level(level)
         self.n_pix, self.n_gamma = so3_grid_size(level)
         self.n_points = self.n_pix * self.n_gamma
         self.dtype, self.device = dtype, _normalize_device(device)
@@ -274,8 +289,9 @@ def get_grid_evaluator(
     lmax: int, level: int, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu"
 ) -> HealpixGridEvaluator:
     """The evaluator for ``(lmax, level)`` on ``device`` in ``dtype``, built once per process."""
+    lmax, level = check_lmax(lmax), check_streamed_level(level)
     device = _normalize_device(device)
-    return _cached(check_lmax(lmax), check_level(level), dtype, str(device))
+    return _cached(lmax, level, dtype, str(device))
 
 
 def _normalize_device(device: torch.device | str) -> torch.device:
@@ -291,8 +307,21 @@ def dense_grid_logits(coeffs: torch.Tensor, lmax: int, level: int, block_points:
 
     The matrix is built and applied ``block_points`` rows at a time, so memory is the output plus
     one block; the full matrix would be ``N x n_so3_coeffs`` (4.3 GB at level 5). Only for tests
-    and benchmarks: it costs ``n_so3_coeffs`` multiply-adds per point and image.
+    and benchmarks: it costs ``n_so3_coeffs`` multiply-adds per point and image. Levels up to
+    :data:`~image2sphere.so3.grid.MAX_DENSE_LEVEL`.
     """
+    lmax = check_lmax(lmax)
+    check_level(level, max_level=MAX_DENSE_LEVEL, purpose="dense grid logits", bytes_per_point=4)
+    n = n_so3_coeffs(lmax)
+    if not isinstance(coeffs, torch.Tensor) or coeffs.ndim != 2 or coeffs.shape[1] != n:
+        shape = tuple(coeffs.shape) if isinstance(coeffs, torch.Tensor) else type(coeffs).__name__
+        raise ValueError(f"coeffs must have shape (batch, {n}) for lmax={lmax}, got {shape}")
+    nbytes = coeffs.shape[0] * 72 * 8**level * coeffs.element_size()
+    if nbytes > MAX_OUTPUT_BYTES:
+        raise ValueError(
+            f"dense grid logits for batch {coeffs.shape[0]} at level {level} need {nbytes / 2**30:.1f} GiB "
+            f"(> {MAX_OUTPUT_BYTES / 2**30:.1f} GiB); use a smaller batch or level"
+        )
     alpha, beta, gamma = so3_healpix_grid_angles(level, dtype=torch.float64)
     out = coeffs.new_empty(coeffs.shape[0], len(alpha))
     for start in range(0, len(alpha), block_points):

@@ -75,14 +75,18 @@ def so3_blocks(lmax: int) -> list[tuple[int, slice]]:
     return blocks
 
 
-@lru_cache(maxsize=32)
 def so3_layout(lmax: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(l, m, n)`` of every flat position, each a long tensor ``(n_so3_coeffs,)``.
 
     ``m`` and ``n`` are matrix indices in ``0..2l``, i.e. order ``-l..l`` shifted by ``l``.
     """
+    return _so3_layout(check_lmax(lmax))
+
+
+@lru_cache(maxsize=32)
+def _so3_layout(lmax: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     ls, ms, ns = [], [], []
-    for l in range(check_lmax(lmax) + 1):
+    for l in range(lmax + 1):
         idx = torch.arange(2 * l + 1)
         mm, nn_ = torch.meshgrid(idx, idx, indexing="ij")
         ls.append(torch.full(((2 * l + 1) ** 2,), l))
@@ -107,7 +111,14 @@ def default_dtype(dtype: torch.dtype):
 
 
 def wigner_D(l: int, alpha: torch.Tensor, beta: torch.Tensor, gamma: torch.Tensor) -> torch.Tensor:
-    """``e3nn.o3.wigner_D`` computed at the precision of ``alpha`` (float64 stays float64-accurate)."""
+    """``e3nn.o3.wigner_D`` computed at the precision of ``alpha`` (float64 stays float64-accurate).
+
+    ``l`` is a non-negative integer; the angles are tensors (or numbers) of broadcastable shapes
+    ``(...)``; the result is ``(..., 2l+1, 2l+1)``.
+    """
+    l = check_lmax(l, "l")
+    alpha, beta, gamma = (torch.as_tensor(a) for a in (alpha, beta, gamma))
+    alpha, beta, gamma = (a if a.is_floating_point() else a.to(torch.get_default_dtype()) for a in (alpha, beta, gamma))
     dtype = torch.promote_types(alpha.dtype, torch.float32)
     with default_dtype(torch.float64 if dtype == torch.float64 else torch.get_default_dtype()):
         return o3.wigner_D(l, alpha, beta, gamma).to(dtype)

@@ -122,7 +122,7 @@ def test_corrupt_or_foreign_checkpoints_give_clear_errors(trained, tmp_path):
     data = ckpt.read_bytes()
     truncated = tmp_path / "truncated.ckpt"
     truncated.write_bytes(data[: len(data) // 2])
-    with pytest.raises(CheckpointError, match=r"truncated.ckpt.*truncated or corrupt"):
+    with pytest.raises(CheckpointError, match=r"truncated.ckpt is not a complete checkpoint .* it is truncated"):
         load_checkpoint(truncated)
     with pytest.raises(CheckpointError, match="checkpoint not found"):
         load_checkpoint(tmp_path / "nowhere.ckpt")
@@ -136,8 +136,9 @@ def test_corrupt_or_foreign_checkpoints_give_clear_errors(trained, tmp_path):
         load_checkpoint(no_config)
     pickled = tmp_path / "pickled.ckpt"
     torch.save({"state_dict": {}, "run_config": {"model": {}}, "extra": Path("/")}, pickled)
-    with pytest.raises(CheckpointError, match="objects other than tensors"):
+    with pytest.raises(CheckpointError, match=r"objects other than tensors .*it names pathlib") as err:
         load_checkpoint(pickled)
+    assert "weights_only" not in str(err.value)  # not torch's advice to load it unsafely
     # a config that describes another network than the weights
     content = load_checkpoint(ckpt)
     content["run_config"]["model"]["net"]["lmax"] = 3
@@ -145,4 +146,4 @@ def test_corrupt_or_foreign_checkpoints_give_clear_errors(trained, tmp_path):
         build_module(content, "edited.ckpt")
     # and from the command line
     proc = _run("src.eval", [f"ckpt_path={truncated}", f"hydra.run.dir={tmp_path / 'e'}"], check=False)
-    assert proc.returncode != 0 and "truncated or corrupt" in proc.stderr
+    assert proc.returncode != 0 and "is not a complete checkpoint" in proc.stderr

@@ -104,6 +104,8 @@ def test_nan_loss_stops_without_writing_a_checkpoint(tmp_path, data_dir):
     proc = run_train(args, data_dir, tmp_path / "logs", check=False)
     assert proc.returncode != 0
     assert "NonFiniteLossError" in proc.stderr and "Lower model.optimizer.lr" in proc.stderr
+    # the first step diverged: there is nothing to resume from, and the message says so
+    assert "no checkpoint was written yet" in proc.stderr and not (run / "checkpoints" / "last.ckpt").exists()
     assert not (run / "metrics.json").exists()
     for ckpt in (run / "checkpoints").glob("*.ckpt"):  # whatever was saved holds finite weights only
         state = torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"]

@@ -109,18 +109,25 @@ def test_checkpoint_keeps_class_names():
     assert restored.class_names == ["a", "b"]
 
 
-def test_epoch_randomness_depends_only_on_seed_and_epoch():
+def test_step_randomness_depends_only_on_seed_and_global_step(monkeypatch):
+    def draw(module, step: int) -> torch.Tensor:
+        monkeypatch.setattr(type(module), "global_step", property(lambda self: step))
+        module.on_train_batch_start({}, 0)
+        return torch.rand(4)
+
     draws = []
     for before in (0, 7):  # whatever was drawn earlier (sanity checks, other loaders) does not matter
         torch.manual_seed(3)
         module = _module()
         module.on_fit_start()
         torch.rand(before)
-        module.on_train_batch_start({}, 0)
-        draws.append(torch.rand(4))
+        draws.append(draw(module, 5))
     torch.testing.assert_close(draws[0], draws[1])
-    module.on_train_batch_start({}, 1)  # only the first batch of an epoch reseeds
-    assert not torch.equal(torch.rand(4), draws[0])
+    assert not torch.equal(draw(module, 6), draws[0])  # every step has its own draws
+    torch.manual_seed(4)  # another run seed
+    other = _module()
+    other.on_fit_start()
+    assert not torch.equal(draw(other, 5), draws[0])
 
 
 @pytest.mark.parametrize(

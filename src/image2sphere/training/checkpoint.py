@@ -9,6 +9,7 @@ code. Every failure names the file and says what did not match.
 from __future__ import annotations
 
 import pickle
+import re
 import zipfile
 from pathlib import Path
 
@@ -30,13 +31,25 @@ def load_checkpoint(path: str | Path) -> dict:
         raise CheckpointError(
             f"checkpoint not found: {path} (a run writes them to logs/<task>/runs/<run>/checkpoints/last.ckpt)"
         )
+    size = path.stat().st_size
+    if size == 0:
+        raise CheckpointError(
+            f"{path} is empty (0 bytes): it was not written completely; use another checkpoint of that run"
+        )
+    if not zipfile.is_zipfile(path):
+        raise CheckpointError(
+            f"{path} is not a complete checkpoint ({size:,} bytes that are not the zip archive torch.save writes): "
+            "it is truncated (a copy or a save that did not finish) or another kind of file"
+        )
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as e:
+        refused = re.search(r"GLOBAL (\S+)", str(e))
+        detail = f" (it names {refused.group(1)})" if refused else ""
         raise CheckpointError(
-            f"{path} holds objects other than tensors and plain containers, which are not loaded (no pickled "
-            f"code is run): {str(e).splitlines()[0]}"
-        ) from e
+            f"{path} holds objects other than tensors and plain containers{detail}; such objects are never "
+            "loaded, since unpickling them could run code. Checkpoints written by python -m src.train hold none"
+        ) from None
     except (RuntimeError, EOFError, OSError, zipfile.BadZipFile, ValueError) as e:
         raise CheckpointError(f"cannot read checkpoint {path}: the file is truncated or corrupt ({e})") from e
     if not isinstance(ckpt, dict) or "state_dict" not in ckpt:

@@ -22,6 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from image2sphere.training.checkpoint import CheckpointError, build_module, load_checkpoint
 from image2sphere.training.pipeline import TABLE_COLUMNS, _finish_loggers, _instantiate_list, format_metrics_table
+from image2sphere.training.run_config import check_eval_config
 
 __all__ = ["evaluate", "format_metrics_markdown"]
 
@@ -42,7 +43,7 @@ def format_metrics_markdown(metrics: dict[str, float], class_names: list[str]) -
 
 def _datamodule(cfg: DictConfig, ckpt: dict):
     if cfg.get("dataset") is not None:
-        return instantiate(cfg.dataset)
+        return instantiate(_dataset_at_model_size(cfg.dataset, ckpt, cfg.ckpt_path))
     dataset = OmegaConf.create(ckpt["run_config"].get("dataset"))
     if not dataset or "_target_" not in dataset:
         raise CheckpointError(f"{cfg.ckpt_path} stores no dataset config: pass dataset=<name>")
@@ -57,12 +58,33 @@ def _datamodule(cfg: DictConfig, ckpt: dict):
         ) from e
 
 
+def _dataset_at_model_size(dataset: DictConfig, ckpt: dict, ckpt_path: str) -> DictConfig:
+    """``dataset`` with the image size the checkpoint's network takes (the dataset file's own default may differ).
+
+    An explicit ``dataset.image_size=...`` on the command line that differs is an error.
+    """
+    size = ((ckpt["run_config"].get("model") or {}).get("net") or {}).get("image_size")
+    if size is None or dataset.get("image_size") in (None, size):
+        return dataset
+    from hydra.core.hydra_config import HydraConfig
+
+    explicit = HydraConfig.initialized() and any(
+        o.lstrip("+~").split("=")[0] == "dataset.image_size" for o in HydraConfig.get().overrides.task
+    )
+    if explicit:
+        raise ValueError(
+            f"dataset.image_size={dataset.image_size}, but the network in {ckpt_path} "
+            f"takes {size} px images: leave dataset.image_size out (it follows the checkpoint) or set it to {size}"
+        )
+    log.info("dataset.image_size: %s -> %s px, the size the checkpoint's network takes", dataset.image_size, size)
+    dataset = dataset.copy()
+    dataset.image_size = size
+    return dataset
+
+
 def evaluate(cfg: DictConfig) -> dict[str, float]:
     """Test the checkpoint ``cfg.ckpt_path``; returns the metrics."""
-    if cfg.get("ckpt_path") is None:
-        raise ValueError(
-            "ckpt_path is required: python -m src.eval ckpt_path=logs/train/runs/<run>/checkpoints/last.ckpt"
-        )
+    check_eval_config(cfg)
     output_dir = Path(cfg.paths.output_dir)
     if (output_dir / "metrics.json").exists():
         raise FileExistsError(f"{output_dir / 'metrics.json'} already exists: choose another hydra.run.dir")

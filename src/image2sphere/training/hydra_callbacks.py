@@ -9,6 +9,8 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
+from image2sphere.training.pipeline import is_slurm_requeue
+
 __all__ = ["RefuseExistingOutputDir"]
 
 
@@ -24,6 +26,8 @@ class RefuseExistingOutputDir(Callback):
     def _check(self, config: DictConfig, key: str) -> None:
         HydraConfig.instance().set_config(config)  # lets ${hydra:...} in the directory resolve
         path = Path(str(OmegaConf.select(config, key)))
+        if key == "hydra.run.dir" and is_slurm_requeue(path):
+            return  # a requeued SLURM job continues in its own directory (see training.checkpointing)
         if path.is_dir() and any(path.iterdir()):
             # Hydra turns exceptions raised by callbacks into warnings; SystemExit does stop the run.
             raise SystemExit(

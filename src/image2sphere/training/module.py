@@ -37,14 +37,21 @@ from image2sphere.metrics import (
     summarize_pose_metrics,
 )
 from image2sphere.so3.distribution import LOG_UNIFORM_DENSITY, SO3Distribution
-from image2sphere.so3.grid import check_level, so3_grid_size, so3_healpix_index_to_matrix, so3_healpix_nearest_index
+from image2sphere.so3.grid import (
+    MAX_DENSE_LEVEL,
+    MAX_STREAMED_LEVEL,
+    check_level,
+    so3_grid_size,
+    so3_healpix_index_to_matrix,
+    so3_healpix_nearest_index,
+)
 from image2sphere.so3.grid_eval import get_grid_evaluator
 
 __all__ = ["NonFiniteLossError", "PoseEstimationModule"]
 
 
 class NonFiniteLossError(FloatingPointError):
-    """Raised when the training loss becomes NaN or infinite (the run stops; no checkpoint is written)."""
+    """Raised when the training loss becomes NaN or infinite (the run stops before that step is taken or saved)."""
 
 
 class PoseEstimationModule(pl.LightningModule):
@@ -82,16 +89,12 @@ class PoseEstimationModule(pl.LightningModule):
             raise ValueError(f"model.net must expose its band limit as .lmax; {type(net).__name__} does not")
         if scheduler_interval not in ("epoch", "step"):
             raise ValueError(f"model.scheduler_interval must be 'epoch' or 'step', got {scheduler_interval!r}")
-        for key, level in (
-            ("train_grid_level", train_grid_level),
-            ("val_grid_level", val_grid_level),
-            ("eval_grid_level", eval_grid_level),
-            ("spread_grid_level", spread_grid_level),
-        ):
-            try:
-                check_level(level)
-            except ValueError as e:
-                raise ValueError(f"model.{key}: {e}") from None
+        self.check_grid_levels(
+            train_grid_level=train_grid_level,
+            val_grid_level=val_grid_level,
+            eval_grid_level=eval_grid_level,
+            spread_grid_level=spread_grid_level,
+        )
         # Only plain values go into checkpoints (they must load with torch.load(weights_only=True));
         # the full resolved config is stored separately as ``run_config``.
         self.save_hyperparameters(logger=False, ignore=["net", "optimizer", "scheduler"])
@@ -105,6 +108,20 @@ class PoseEstimationModule(pl.LightningModule):
         self._records: dict[str, list[torch.Tensor]] = {}
         self._seed_base = torch.initial_seed()
         self.run_config: dict | None = None  # the resolved Hydra config, stored in checkpoints
+
+    @staticmethod
+    def check_grid_levels(prefix: str = "model.", **levels: int) -> None:
+        """Refuse grid levels this module cannot evaluate on, naming the key (streamed work up to level 7, the
+        spread's dense grid up to level 6).
+
+        Called by the constructor and, before any data is read or rendered, by the training run's
+        config check (:func:`image2sphere.training.run_config.check_train_config`).
+        """
+        for key, level in levels.items():
+            if key.endswith("spread_grid_level"):  # the spread sums one value per grid point
+                check_level(level, name=f"{prefix}{key}", max_level=MAX_DENSE_LEVEL, purpose="the spread's dense grid")
+            else:
+                check_level(level, name=f"{prefix}{key}", max_level=MAX_STREAMED_LEVEL, purpose="streamed evaluation")
 
     # ------------------------------------------------------------------ forward
     def forward(self, images: torch.Tensor, class_index: torch.Tensor | None = None) -> torch.Tensor:
@@ -142,8 +159,7 @@ class PoseEstimationModule(pl.LightningModule):
             raise NonFiniteLossError(
                 f"training loss is {loss.item()} at epoch {self.current_epoch}, batch {batch_idx} "
                 f"(global step {self.global_step}); the run was stopped before this step could reach a "
-                "checkpoint. Lower model.optimizer.lr or check the data; resume from the last good "
-                "checkpoint with ckpt_path=<run>/checkpoints/last.ckpt"
+                "checkpoint. Lower model.optimizer.lr or check the data"
             )
         self.log("train/loss", loss, prog_bar=True, on_step=True, on_epoch=True, batch_size=len(coeffs))
         return loss
@@ -272,8 +288,8 @@ class PoseEstimationModule(pl.LightningModule):
 
     def on_train_batch_start(self, batch: dict, batch_idx: int) -> None:
         # The network's own randomness (the projector's random grid subset) comes from torch's global
-        # generator. Reseeding it from (seed, epoch) at each epoch's first batch makes an epoch's
-        # draws independent of everything before it, so a run resumed from a checkpoint continues
-        # exactly as the uninterrupted run (the data order and labels follow the same rule).
-        if batch_idx == 0:
-            torch.manual_seed(stable_seed("train-epoch", self._seed_base, self.current_epoch))
+        # generator. Reseeding it from (seed, global step) before every step makes each step's draws
+        # independent of everything before it, so a run resumed from a checkpoint, one written at an
+        # epoch's end or in the middle of an epoch, continues exactly as the uninterrupted run (the data
+        # order and labels follow the same rule, see image2sphere.training.checkpointing).
+        torch.manual_seed(stable_seed("train-step", self._seed_base, self.global_step))

@@ -12,12 +12,18 @@ import json
 import logging
 import math
 import os
+import signal
 import time
 from pathlib import Path
 
 import lightning.pytorch as pl
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
+
+from image2sphere.training.checkpoint import load_checkpoint
+from image2sphere.training.checkpointing import TrainingInterrupted
+from image2sphere.training.module import NonFiniteLossError
+from image2sphere.training.run_config import check_train_config, resume_config
 
 __all__ = ["format_metrics_table", "register_resolvers", "train"]
 
@@ -32,10 +38,41 @@ TABLE_COLUMNS = (
 )
 
 
+def slurm_job_id() -> str | None:
+    """The id of the SLURM job this process runs in (``<array job>_<task>`` for array jobs), else ``None``."""
+    array, task = os.environ.get("SLURM_ARRAY_JOB_ID"), os.environ.get("SLURM_ARRAY_TASK_ID")
+    if array and task:
+        return f"{array}_{task}"
+    return os.environ.get("SLURM_JOB_ID") or None
+
+
+def _run_id(timestamp: str) -> str:
+    job = slurm_job_id()
+    return f"slurm_{job}" if job else f"{timestamp}_{os.getpid()}"
+
+
 def register_resolvers() -> None:
-    """OmegaConf resolvers used by ``conf/``: ``${pid:}`` (this process id, keeps run directories unique)."""
+    """OmegaConf resolvers used by ``conf/``.
+
+    ``${pid:}``: this process id. ``${run_id:<timestamp>}``: the name of a run directory,
+    ``<timestamp>_<pid>`` (unique per run), or ``slurm_<job id>`` inside a SLURM job, so that a job
+    requeued by SLURM finds its own directory and Lightning's ``hpc_ckpt_*.ckpt`` again.
+    """
     if not OmegaConf.has_resolver("pid"):
         OmegaConf.register_new_resolver("pid", lambda: os.getpid(), use_cache=True)
+    if not OmegaConf.has_resolver("run_id"):
+        OmegaConf.register_new_resolver("run_id", _run_id, use_cache=True)
+
+
+def is_slurm_requeue(output_dir: Path) -> bool:
+    """True for a SLURM job that was requeued and left Lightning's requeue checkpoint in ``output_dir``."""
+    restarts = os.environ.get("SLURM_RESTART_COUNT", "0")
+    return (
+        slurm_job_id() is not None
+        and restarts.isdigit()
+        and int(restarts) > 0
+        and any(output_dir.glob("hpc_ckpt_*.ckpt"))
+    )
 
 
 def format_metrics_table(metrics: dict[str, float], class_names: list[str]) -> str:
@@ -54,21 +91,6 @@ def format_metrics_table(metrics: dict[str, float], class_names: list[str]) -> s
     return "\n".join(lines)
 
 
-def _check_config(cfg: DictConfig) -> None:
-    ckpt = cfg.get("ckpt_path")
-    if ckpt is not None and not Path(ckpt).is_file():
-        raise FileNotFoundError(
-            f"ckpt_path={ckpt} does not exist; pass the checkpoint of an earlier run, "
-            "e.g. ckpt_path=logs/train/runs/<run>/checkpoints/last.ckpt"
-        )
-    seed = cfg.get("seed")
-    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
-        raise ValueError(f"seed must be an integer or null, got {seed!r}")
-    for key in ("train", "test"):
-        if not isinstance(cfg.get(key), bool):
-            raise ValueError(f"{key} must be true or false, got {cfg.get(key)!r}")
-
-
 def _instantiate_list(group: DictConfig | None, what: str) -> list:
     """Every entry of a config group that has a ``_target_`` (others are ignored)."""
     out = []
@@ -84,15 +106,37 @@ def _instantiate_list(group: DictConfig | None, what: str) -> list:
 
 
 def train(cfg: DictConfig) -> dict[str, float]:
-    """Fit and/or test as ``cfg`` says; returns the test metrics (empty when ``test=false``)."""
-    _check_config(cfg)
+    """Fit and/or test as ``cfg`` says; returns the test metrics (empty when ``test=false``).
+
+    With ``ckpt_path`` set, the run resumes from that checkpoint with the model, data and schedule of
+    the checkpoint's own stored config, except where the command line changes them explicitly
+    (:func:`~image2sphere.training.run_config.resume_config`).
+    Raises :class:`SystemExit` (status 128 + signal number) when a Ctrl-C or SIGTERM stopped training,
+    after a line that says how to resume.
+    """
+    ckpt_path = cfg.get("ckpt_path")
+    if ckpt_path is not None:
+        if not Path(ckpt_path).is_file():
+            raise FileNotFoundError(
+                f"ckpt_path={ckpt_path} does not exist; pass the checkpoint of an earlier run, "
+                "e.g. ckpt_path=logs/train/runs/<run>/checkpoints/last.ckpt"
+            )
+        cfg = resume_config(cfg, load_checkpoint(ckpt_path), str(ckpt_path))
+    check_train_config(cfg)
     output_dir = Path(cfg.paths.output_dir)
+    requeued = is_slurm_requeue(output_dir)  # Lightning resumes it from its hpc_ckpt_*.ckpt
     for existing in (output_dir / "checkpoints", output_dir / "metrics.json"):
+        if requeued and existing.name == "checkpoints":
+            continue
         if existing.exists() and (existing.is_file() or any(existing.iterdir())):
             raise FileExistsError(
                 f"{existing} already exists: another run used {output_dir}. Runs never share a directory; "
                 "choose another hydra.run.dir (or leave it at its default, which is unique per run)"
             )
+    if ckpt_path is not None:
+        output_dir.mkdir(parents=True, exist_ok=True)
+        with open(output_dir / "resumed_config.yaml", "x") as f:  # what this run really uses
+            f.write(OmegaConf.to_yaml(cfg))
     if cfg.get("seed") is not None:
         pl.seed_everything(cfg.seed, workers=True)
 
@@ -104,7 +148,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
         model.class_names = list(getattr(datamodule, "class_names", []) or []) or None
     model.run_config = OmegaConf.to_container(cfg, resolve=True)
     callbacks = _instantiate_list(cfg.get("callbacks"), "callback")
-    loggers = _instantiate_list(cfg.get("logger"), "logger")
+    # a smoke run (fast_dev_run) writes no logger files: Lightning would only silence the loggers
+    loggers = [] if cfg.trainer.get("fast_dev_run") else _instantiate_list(cfg.get("logger"), "logger")
     if not loggers:  # the learning-rate monitor needs a logger to write to
         callbacks = [c for c in callbacks if not isinstance(c, pl.callbacks.LearningRateMonitor)]
     trainer: pl.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
@@ -114,7 +159,19 @@ def train(cfg: DictConfig) -> dict[str, float]:
     timings: dict[str, float] = {}
     if cfg.train:
         start = time.perf_counter()
-        trainer.fit(model=model, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
+        try:
+            trainer.fit(model=model, datamodule=datamodule, ckpt_path=ckpt_path)
+        except TrainingInterrupted as e:
+            _finish_loggers(loggers)
+            _exit_interrupted(e)
+        except NonFiniteLossError as e:
+            last = output_dir / "checkpoints" / "last.ckpt"
+            hint = (
+                f"the last good checkpoint is {last} (resume with ckpt_path={last} and a lower lr)"
+                if last.is_file()
+                else "no checkpoint was written yet (this happened in the first epoch): restart with a lower lr"
+            )
+            raise NonFiniteLossError(f"{e}; {hint}") from None
         timings["train_seconds"] = time.perf_counter() - start
         log.info("Training took %.1f s", timings["train_seconds"])
         if trainer.interrupted:
@@ -122,10 +179,10 @@ def train(cfg: DictConfig) -> dict[str, float]:
             return {}
     metrics: dict[str, float] = {}
     if cfg.test:
-        if not cfg.train and cfg.get("ckpt_path") is None:
+        if not cfg.train and ckpt_path is None:
             log.warning("Testing a model that was neither trained nor loaded (train=false, ckpt_path=null)")
         start = time.perf_counter()
-        trainer.test(model=model, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path") if not cfg.train else None)
+        trainer.test(model=model, datamodule=datamodule, ckpt_path=ckpt_path if not cfg.train else None)
         timings["test_seconds"] = time.perf_counter() - start
         metrics = dict(model.test_metrics)
         if trainer.is_global_zero and metrics:
@@ -138,6 +195,19 @@ def train(cfg: DictConfig) -> dict[str, float]:
             print(f"Run directory: {output_dir}\n")
     _finish_loggers(loggers)
     return {**metrics, **timings}
+
+
+def _exit_interrupted(e: TrainingInterrupted) -> None:
+    name = signal.Signals(e.signum).name
+    if e.checkpoint:
+        message = (
+            f"Training stopped by {name} in epoch {e.epoch} (global step {e.step}). Checkpoint: {e.checkpoint}\n"
+            f"Resume with: python -m src.train ckpt_path={e.checkpoint}"
+        )
+    else:
+        message = f"Training stopped by {name} in epoch {e.epoch} (global step {e.step}); no checkpoint was written"
+    log.warning(message)
+    raise SystemExit(128 + e.signum)
 
 
 def _finish_loggers(loggers: list) -> None:

@@ -1,0 +1,213 @@
+"""The run's config before any work starts: one check of its values, and the config of a resumed run.
+
+:func:`check_train_config` and :func:`check_eval_config` refuse invalid values (naming the key and
+what is allowed) before a dataset is read or rendered, a network built or a file written.
+
+:func:`resume_config` decides what a run started with ``ckpt_path=...`` trains: the checkpoint
+holds the resolved config of the run that wrote it (``run_config``), and
+
+* **what is trained** comes from there: the sections ``model`` (network, optimiser, schedule,
+  grid levels), ``dataset`` and ``encoder``, the top-level ``lmax``, ``train_grid_level``,
+  ``eval_grid_level`` and ``seed``, and the trainer's schedule (``trainer.max_epochs``, ``max_steps``,
+  ``min_epochs``, ``precision``, ``accumulate_grad_batches``, ``gradient_clip_val``);
+* **where and how the run goes** (run directory, loggers, callbacks, devices) comes from the new
+  command line and its defaults;
+* any key the new command line changes explicitly (``trainer.max_epochs=60``, ``dataset=symsol1``,
+  ``model.optimizer.lr=1e-4``, an ``experiment=...`` file) wins over the checkpoint.
+
+"Changes explicitly" is decided by Hydra itself: the config is composed once with the command
+line's overrides and once without, and the keys whose values differ are the explicit ones.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+from typing import Any
+
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
+__all__ = ["check_eval_config", "check_train_config", "resume_config"]
+
+log = logging.getLogger(__name__)
+
+# what a resumed run takes from its checkpoint unless the command line changes it
+FROM_CHECKPOINT = ("model", "dataset", "encoder", "lmax", "train_grid_level", "eval_grid_level", "seed")
+TRAINER_FROM_CHECKPOINT = (
+    "max_epochs",
+    "min_epochs",
+    "max_steps",
+    "precision",
+    "accumulate_grad_batches",
+    "gradient_clip_val",
+)
+
+
+def _int_at_least(cfg: DictConfig, key: str, minimum: int, allow_null: bool = False) -> None:
+    value = OmegaConf.select(cfg, key)
+    if value is None and (allow_null or OmegaConf.select(cfg, key, default="<absent>") == "<absent>"):
+        return
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        null = " or null" if allow_null else ""
+        raise ValueError(f"{key} must be an integer >= {minimum}{null}, got {value!r}")
+
+
+def _check_levels(cfg: DictConfig, keys: list[str]) -> None:
+    from image2sphere.training.module import PoseEstimationModule
+
+    levels = {key: OmegaConf.select(cfg, key) for key in keys if OmegaConf.select(cfg, key) is not None}
+    PoseEstimationModule.check_grid_levels(prefix="", **levels)
+
+
+def check_train_config(cfg: DictConfig) -> None:
+    """Refuse invalid values of a training config (``python -m src.train``) before any work starts."""
+    seed = cfg.get("seed")
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
+        raise ValueError(f"seed must be an integer or null, got {seed!r}")
+    for key in ("train", "test"):
+        if not isinstance(cfg.get(key), bool):
+            raise ValueError(f"{key} must be true or false, got {cfg.get(key)!r}")
+    _int_at_least(cfg, "lmax", 0)
+    _check_levels(
+        cfg,
+        ["train_grid_level", "eval_grid_level"]
+        + [f"model.{k}" for k in ("train_grid_level", "val_grid_level", "eval_grid_level", "spread_grid_level")],
+    )
+    for key in ("dataset.image_size", "dataset.batch_size", "model.net.image_size"):
+        _int_at_least(cfg, key, 1)
+    _int_at_least(cfg, "dataset.num_workers", 0)
+    net_size, data_size = OmegaConf.select(cfg, "model.net.image_size"), OmegaConf.select(cfg, "dataset.image_size")
+    if net_size is not None and data_size is not None and net_size != data_size:
+        raise ValueError(
+            f"model.net.image_size={net_size} but dataset.image_size={data_size}: the network takes images of the "
+            "size it was built for; set both to the same value"
+        )
+    max_epochs = OmegaConf.select(cfg, "trainer.max_epochs")
+    if max_epochs is not None and (isinstance(max_epochs, bool) or not isinstance(max_epochs, int) or max_epochs < -1):
+        raise ValueError(f"trainer.max_epochs must be an integer >= 1 (or -1: no limit), got {max_epochs!r}")
+
+
+def check_eval_config(cfg: DictConfig) -> None:
+    """Refuse invalid values of an evaluation config (``python -m src.eval``) before any work starts."""
+    if cfg.get("ckpt_path") is None:
+        raise ValueError(
+            "ckpt_path is required: python -m src.eval ckpt_path=logs/train/runs/<run>/checkpoints/last.ckpt"
+        )
+    _check_levels(cfg, ["eval_grid_level"])
+    _int_at_least(cfg, "batch_size", 1, allow_null=True)
+    _int_at_least(cfg, "plots", 0)
+    if not isinstance(cfg.get("refine"), bool):
+        raise ValueError(f"refine must be true or false, got {cfg.get('refine')!r}")
+
+
+# ---------------------------------------------------------------------------------------------- resume
+def _leaves(node: Any, prefix: str = "") -> dict[str, Any]:
+    """``{dotted key: value}`` of every leaf of a config, interpolations resolved where they can be.
+
+    Interpolations that cannot be resolved outside a running Hydra job (``${hydra:...}``) keep
+    their text; nodes that interpolate other nodes (``encoder: ${encoder}``) are walked through.
+    """
+    out: dict[str, Any] = {}
+    if isinstance(node, DictConfig):
+        keys = list(node.keys())
+        if not keys:
+            out[prefix] = {}
+        for key in keys:
+            path = f"{prefix}.{key}" if prefix else str(key)
+            try:
+                value = node[key]
+            except Exception:  # an interpolation that needs the running job
+                value = OmegaConf.to_container(node, resolve=False)[key]
+            out.update(_leaves(value, path))
+    elif isinstance(node, ListConfig):
+        try:
+            out[prefix] = OmegaConf.to_container(node, resolve=True)
+        except Exception:
+            out[prefix] = OmegaConf.to_container(node, resolve=False)
+    else:
+        out[prefix] = node
+    return out
+
+
+def explicit_override_keys(config_name: str, overrides: list[str]) -> set[str]:
+    """Dotted keys whose values the command line's ``overrides`` change (Hydra composes both ways)."""
+    from hydra import compose
+
+    def leaves(ov: list[str]) -> dict[str, Any]:
+        return _leaves(compose(config_name=config_name, overrides=ov))
+
+    with_ov, without = leaves(overrides), leaves([])
+    return {k for k in set(with_ov) | set(without) if with_ov.get(k, "<absent>") != without.get(k, "<absent>")}
+
+
+def _command_line() -> tuple[str, list[str]] | None:
+    """The config name and the task overrides of the running Hydra job (``None`` outside Hydra)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return None
+    hc = HydraConfig.get()
+    return hc.job.config_name, list(hc.overrides.task)
+
+
+def _merge(stored: Any, current: Any, prefix: str, explicit: set[str]) -> Any:
+    """``stored`` with the leaves under ``prefix`` that the command line changed taken from ``current``."""
+    if not any(k == prefix or k.startswith(prefix + ".") for k in explicit):
+        return copy.deepcopy(stored)
+    if prefix in explicit or not (isinstance(stored, dict) and isinstance(current, dict)):
+        return copy.deepcopy(current)
+    if f"{prefix}._target_" in explicit:  # another class: its arguments are another set
+        return copy.deepcopy(current)
+    out = {}
+    for key in list(stored) + [k for k in current if k not in stored]:
+        path = f"{prefix}.{key}"
+        if key not in current:
+            if not any(k == path or k.startswith(path + ".") for k in explicit):  # else the command line removed it
+                out[key] = copy.deepcopy(stored[key])
+        elif key not in stored:
+            out[key] = copy.deepcopy(current[key])
+        else:
+            out[key] = _merge(stored[key], current[key], path, explicit)
+    return out
+
+
+def resume_config(cfg: DictConfig, ckpt: dict, ckpt_path: str) -> DictConfig:
+    """The config a run resumed from ``ckpt`` runs with (see the module docstring); logs what came from where."""
+    stored = ckpt["run_config"]
+    current = OmegaConf.to_container(cfg, resolve=True)
+    command = _command_line()
+    explicit: set[str] = set()
+    if command is not None:
+        overrides = [o for o in command[1] if o.lstrip("+~").split("=")[0] != "ckpt_path"]
+        if overrides:
+            explicit = explicit_override_keys(command[0], overrides)
+    result = copy.deepcopy(current)
+    taken: list[str] = []
+    for key in FROM_CHECKPOINT:
+        if key in stored:
+            result[key] = _merge(stored[key], current.get(key), key, explicit)
+            taken.append(key)
+    stored_trainer, trainer = stored.get("trainer") or {}, result.get("trainer")
+    if isinstance(trainer, dict):
+        for key in TRAINER_FROM_CHECKPOINT:
+            path = f"trainer.{key}"
+            if key in stored_trainer and path not in explicit:
+                trainer[key] = stored_trainer[key]
+        taken.append("trainer schedule")
+    stored_leaves, result_leaves = _leaves(OmegaConf.create(stored)), _leaves(OmegaConf.create(result))
+    checkpoint_keys = set(FROM_CHECKPOINT) | {f"trainer.{k}" for k in TRAINER_FROM_CHECKPOINT}
+    from_command = sorted(
+        k
+        for k in explicit
+        if any(k == c or k.startswith(c + ".") for c in checkpoint_keys)
+        and stored_leaves.get(k, "<absent>") != result_leaves.get(k, "<absent>")
+    )
+    log.info(
+        "Resuming from %s (epoch %s, global step %s): %s from the checkpoint's stored config%s",
+        ckpt_path,
+        ckpt.get("epoch"),
+        ckpt.get("global_step"),
+        ", ".join(taken),
+        f"; from the command line: {', '.join(from_command)}" if from_command else "",
+    )
+    return OmegaConf.create(result)

@@ -1,0 +1,293 @@
+"""Checkpoints that survive crashes, and resuming from them.
+
+* ``last.ckpt`` exists as soon as the first epoch ends (a run killed then loses nothing);
+* Ctrl-C and SIGTERM stop at a batch boundary, write ``last.ckpt`` and say how to resume; the resumed
+  run ends with exactly the weights of the run that was never stopped;
+* a full disk while writing leaves the previous ``last.ckpt`` intact;
+* a resumed run takes its model, data and schedule from the checkpoint, the command line's explicit
+  keys win; broken checkpoint files and invalid config values stop the run before any work;
+* under SLURM, Lightning's requeue mechanism writes its checkpoint into the job's own directory and
+  the requeued job continues from it.
+"""
+
+from __future__ import annotations
+
+import os
+import resource
+import shutil
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import lightning.pytorch as pl
+import pytest
+import torch
+from torch import nn
+from torch.utils.data import DataLoader, TensorDataset
+
+from image2sphere.training.checkpointing import AtomicCheckpointIO, EpochCheckpoint
+from test_train_entry import ENV, REPO, TINY, run_train, train_command
+
+STEPS_PER_EPOCH_BS2 = 8  # 2 shapes x (10 - 2 validation) images in batches of 2
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("data")
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory, data_dir) -> Path:
+    """A one-epoch run with lmax 3 (not the TINY default); returns its run directory."""
+    run = tmp_path_factory.mktemp("trained") / "run"
+    run_train(["logger=none", "lmax=3", "trainer.max_epochs=1", f"hydra.run.dir={run}"], data_dir, run.parent / "logs")
+    return run
+
+
+def _wait_for(path: Path, proc: subprocess.Popen, timeout: float = 600) -> None:
+    deadline = time.monotonic() + timeout
+    while not path.exists() and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.02)
+    assert path.exists(), f"{path} was not written"
+
+
+def _weights(run: Path) -> dict:
+    return torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+
+
+# ------------------------------------------------------------------ every epoch, kill, interrupt
+@pytest.mark.slow
+def test_sigkill_right_after_the_first_epoch_leaves_a_checkpoint_that_resumes_at_epoch_1(tmp_path, data_dir):
+    run = tmp_path / "killed"
+    cmd = train_command(["logger=none", "trainer.max_epochs=100", f"hydra.run.dir={run}"], data_dir, tmp_path / "l")
+    proc = subprocess.Popen(cmd, cwd=REPO, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    ckpt = run / "checkpoints" / "last.ckpt"
+    try:
+        _wait_for(ckpt, proc)
+    finally:
+        proc.kill()
+        proc.wait()
+    saved = torch.load(ckpt, map_location="cpu", weights_only=True)  # complete, plain types only
+    steps = 3  # 2 shapes x 8 training images in batches of 6
+    assert saved["epoch"] == 0 and saved["global_step"] == steps  # written when the first epoch ended
+    assert not list(run.joinpath("checkpoints").glob("*.tmp-*"))
+    resumed = tmp_path / "resumed"
+    proc2 = run_train(
+        ["logger=none", "trainer.max_epochs=2", f"ckpt_path={ckpt}", f"hydra.run.dir={resumed}"], data_dir, tmp_path
+    )
+    assert "Restored all states from the checkpoint" in proc2.stdout + proc2.stderr
+    final = _weights(resumed)
+    assert final["epoch"] == 1 and final["global_step"] == 2 * steps  # exactly epoch 1 was trained
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_interrupted_run_writes_last_ckpt_says_how_to_resume_and_resumes_exactly(tmp_path, data_dir, sig):
+    common = ["logger=none", "dataset.batch_size=2", "trainer.max_epochs=2"]
+    full, stopped, resumed = tmp_path / "full", tmp_path / "stopped", tmp_path / "resumed"
+    cmd = train_command([*common, f"hydra.run.dir={stopped}"], data_dir, tmp_path / "logs")
+    proc = subprocess.Popen(cmd, cwd=REPO, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    ckpt = stopped / "checkpoints" / "last.ckpt"
+    _wait_for(ckpt, proc)  # the end of epoch 0
+    time.sleep(0.5)  # into epoch 1
+    proc.send_signal(sig)
+    out, _ = proc.communicate(timeout=300)
+    assert proc.returncode == 128 + sig, out[-3000:]
+    assert f"Training stopped by {signal.Signals(sig).name}" in out
+    assert f"Resume with: python -m src.train ckpt_path={ckpt}" in out
+    assert not (stopped / "metrics.json").exists()  # no test after an interrupted fit
+    saved = torch.load(ckpt, map_location="cpu", weights_only=True)
+    assert saved["global_step"] >= STEPS_PER_EPOCH_BS2
+
+    run_train([*common, f"hydra.run.dir={full}"], data_dir, tmp_path / "logs")
+    run_train(
+        ["logger=none", "dataset.batch_size=2", f"ckpt_path={ckpt}", f"hydra.run.dir={resumed}"], data_dir, tmp_path
+    )
+    a, b = _weights(full), _weights(resumed)
+    assert a["global_step"] == b["global_step"] == 2 * STEPS_PER_EPOCH_BS2
+    for key, value in a["state_dict"].items():
+        torch.testing.assert_close(b["state_dict"][key], value, rtol=1e-5, atol=1e-6, msg=f"weights differ: {key}")
+
+
+# ------------------------------------------------------------------ atomic writes, full disk
+class _Tiny(pl.LightningModule):
+    def __init__(self):
+        super().__init__()
+        self.layer = nn.Linear(4, 1)
+
+    def training_step(self, batch, batch_idx):
+        return self.layer(batch[0]).pow(2).mean()
+
+    def configure_optimizers(self):
+        return torch.optim.SGD(self.parameters(), lr=0.1)
+
+
+class _DiskFullFromEpoch(pl.Callback):
+    """From the start of ``epoch`` on, no file of this process may grow past 64 bytes (EFBIG, like a full disk)."""
+
+    def __init__(self, epoch: int):
+        self.epoch = epoch
+
+    def on_train_epoch_start(self, trainer, pl_module):
+        if trainer.current_epoch == self.epoch:
+            resource.setrlimit(resource.RLIMIT_FSIZE, (64, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+
+
+def test_full_disk_while_saving_keeps_the_previous_last_ckpt(tmp_path):
+    limits = resource.getrlimit(resource.RLIMIT_FSIZE)
+    previous_handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # writes fail with EFBIG instead
+    data = DataLoader(TensorDataset(torch.randn(8, 4)), batch_size=4)
+    checkpoint = EpochCheckpoint(dirpath=tmp_path / "checkpoints", save_last=True, save_top_k=0)
+    trainer = pl.Trainer(
+        max_epochs=3, callbacks=[checkpoint, _DiskFullFromEpoch(1)], plugins=[AtomicCheckpointIO()],
+        logger=False, enable_progress_bar=False, enable_model_summary=False, default_root_dir=tmp_path,
+    )  # fmt: skip
+    last = tmp_path / "checkpoints" / "last.ckpt"
+    try:
+        with pytest.raises(OSError, match=r"could not write checkpoint .*last\.ckpt.*previous last\.ckpt is intact"):
+            trainer.fit(_Tiny(), data)
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, limits)
+        signal.signal(signal.SIGXFSZ, previous_handler)
+    saved = torch.load(last, weights_only=True)  # the epoch-0 checkpoint, whole
+    assert saved["epoch"] == 0 and saved["global_step"] == 2
+    assert sorted(p.name for p in last.parent.iterdir()) == ["last.ckpt"]  # no partial temporary file left
+
+
+def test_atomic_write_replaces_the_file_only_when_complete(tmp_path):
+    path = tmp_path / "last.ckpt"
+    io = AtomicCheckpointIO()
+    io.save_checkpoint({"step": 1, "w": torch.ones(3)}, path)
+    before = path.read_bytes()
+
+    class Unpicklable:
+        def __reduce__(self):
+            raise RuntimeError("boom while writing")
+
+    with pytest.raises(RuntimeError, match="boom while writing"):
+        io.save_checkpoint({"step": 2, "bad": Unpicklable()}, path)
+    assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["last.ckpt"]
+    io.save_checkpoint({"step": 3, "w": torch.zeros(3)}, path)
+    assert torch.load(path, weights_only=True)["step"] == 3
+
+
+# ------------------------------------------------------------------ resume from the checkpoint's config
+@pytest.mark.slow
+def test_resume_rebuilds_model_and_data_from_the_checkpoint_config(tmp_path, trained, data_dir):
+    ckpt = trained / "checkpoints" / "last.ckpt"
+    resumed = tmp_path / "resumed"
+    # none of the original overrides (lmax 3, 32 px, tiny network ...) are repeated; lr is changed explicitly
+    cmd = ["python", "-m", "src.train", f"ckpt_path={ckpt}", "trainer.max_epochs=2", "model.optimizer.lr=0.5",
+           "logger=none", f"paths.data_dir={data_dir}", f"paths.log_dir={tmp_path}", f"hydra.run.dir={resumed}",
+           "callbacks.progress_bar.refresh_rate=0", "trainer.accelerator=cpu"]  # fmt: skip
+    proc = subprocess.run(cmd, cwd=REPO, env=ENV, capture_output=True, text=True, timeout=600)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out[-4000:]
+    assert "from the checkpoint's stored config" in out
+    assert "from the command line: model.optimizer.lr, trainer.max_epochs" in out
+    final = _weights(resumed)
+    config = final["run_config"]
+    assert config["lmax"] == 3 and config["model"]["net"]["lmax"] == 3 and config["dataset"]["image_size"] == 32
+    assert config["model"]["net"]["sphere_channels"] == 16
+    assert config["model"]["optimizer"]["lr"] == 0.5 and config["trainer"]["max_epochs"] == 2
+    assert final["epoch"] == 1
+    assert (resumed / "resumed_config.yaml").is_file()
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (b"", "is empty (0 bytes)"),
+        (None, "is not a complete checkpoint"),  # the trained checkpoint cut in half
+        (os.urandom(3000), "is not a complete checkpoint"),
+    ],
+)
+def test_broken_checkpoint_is_refused_before_any_work(tmp_path, trained, data_dir, content, message):
+    bad = tmp_path / "bad.ckpt"
+    if content is None:
+        whole = (trained / "checkpoints" / "last.ckpt").read_bytes()
+        content = whole[: len(whole) // 2]
+    bad.write_bytes(content)
+    proc = run_train(["logger=none", f"ckpt_path={bad}", f"hydra.run.dir={tmp_path / 'run'}"], data_dir, tmp_path,
+                     check=False)  # fmt: skip
+    assert proc.returncode != 0 and f"{bad} {message}" in proc.stderr, proc.stderr[-3000:]
+    assert "weights_only=False" not in proc.stderr and "Traceback" not in proc.stderr.split("Error")[0]
+    assert not (tmp_path / "run" / "checkpoints").exists()
+
+
+def test_foreign_checkpoint_is_refused(tmp_path, data_dir):
+    foreign = tmp_path / "foreign.ckpt"
+    torch.save({"weights": torch.ones(2)}, foreign)
+    proc = run_train(["logger=none", f"ckpt_path={foreign}"], data_dir, tmp_path, check=False)
+    assert proc.returncode != 0 and "is not a Lightning checkpoint" in proc.stderr
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("eval_grid_level=9", "eval_grid_level=9 is too fine"),
+        ("train_grid_level=-1", "train_grid_level must be an integer"),
+        ("lmax=-2", "lmax must be an integer >= 0"),
+        ("dataset.batch_size=0", "dataset.batch_size must be an integer >= 1"),
+        ("model.net.image_size=64", "model.net.image_size=64 but dataset.image_size=32"),
+        ("seed=1.5", "seed must be an integer or null"),
+    ],
+)
+def test_invalid_config_values_stop_the_run_before_any_work(tmp_path, override, message):
+    data = tmp_path / "data"
+    start = time.monotonic()
+    proc = run_train(["logger=none", override], data, tmp_path / "logs", check=False)
+    assert proc.returncode != 0 and message in proc.stderr, proc.stderr[-3000:]
+    assert time.monotonic() - start < 60
+    assert not data.exists() or not any(data.iterdir())  # nothing was rendered
+
+
+# ------------------------------------------------------------------ fast_dev_run writes nothing heavy
+def test_fast_dev_run_writes_no_checkpoint_and_no_logger_files(tmp_path, data_dir):
+    run = tmp_path / "run"
+    run_train(["trainer.fast_dev_run=true", "logger=wandb", f"hydra.run.dir={run}"], data_dir, tmp_path)
+    assert (run / "metrics.json").is_file()
+    assert not list(run.rglob("*.ckpt")) and not (run / "wandb").exists()
+
+
+# ------------------------------------------------------------------ SLURM requeue (Lightning's own mechanism)
+SLURM = {"SLURM_JOB_ID": "4242", "SLURM_NTASKS": "1", "SLURM_JOB_NAME": "i2s", "SLURM_PROCID": "0",
+         "SLURM_LOCALID": "0", "SLURM_NODEID": "0", "SLURM_NODELIST": "localhost"}  # fmt: skip
+
+
+@pytest.mark.slow
+def test_slurm_requeue_signal_writes_hpc_checkpoint_and_requeued_job_resumes_from_it(tmp_path, data_dir):
+    env = {**ENV, **SLURM, "PATH": f"{tmp_path}:{ENV['PATH']}"}
+    (tmp_path / "scontrol").write_text('#!/bin/sh\necho "$@" >> "$(dirname "$0")/requeued"\n')
+    (tmp_path / "scontrol").chmod(0o755)
+    logs = tmp_path / "logs"
+    cmd = train_command(["logger=none", "trainer.max_epochs=100"], data_dir, logs)
+    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    run = logs / "train" / "runs" / "slurm_4242"  # named after the job, so a requeued job finds it
+    try:
+        _wait_for(run / "checkpoints" / "last.ckpt", proc)
+        proc.send_signal(signal.SIGUSR1)
+        _wait_for(run / "hpc_ckpt_1.ckpt", proc, timeout=120)
+        deadline = time.monotonic() + 60
+        while not (tmp_path / "requeued").exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert (tmp_path / "requeued").read_text().split() == ["requeue", "4242"]
+    hpc = torch.load(run / "hpc_ckpt_1.ckpt", map_location="cpu", weights_only=True)
+    # the requeued job: same job id, SLURM counts the restart; it continues in the same directory
+    shutil.rmtree(run / "checkpoints")  # only Lightning's requeue checkpoint can be resumed from
+    env["SLURM_RESTART_COUNT"] = "1"
+    max_epochs = hpc["epoch"] + 2
+    cmd = train_command(["logger=none", f"trainer.max_epochs={max_epochs}"], data_dir, logs)
+    proc2 = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    out = proc2.stdout + proc2.stderr
+    assert proc2.returncode == 0, out[-4000:]
+    assert f"Restored all states from the checkpoint at {run / 'hpc_ckpt_1.ckpt'}" in out
+    assert (run / "metrics.json").is_file() and _weights(run)["epoch"] == max_epochs - 1
+
+
+def test_tiny_overrides_are_the_ones_the_entry_test_uses():
+    assert "dataset.image_size=32" in TINY and "lmax=2" in TINY  # the trained fixture's lmax 3 differs from these

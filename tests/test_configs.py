@@ -219,3 +219,13 @@ def test_invalid_value_is_reported_with_its_key(tmp_path):
     cfg = compose_cfg(tmp_path, ["dataset.shapes=[cube,dodecahedron]"])
     with pytest.raises(Exception, match="dataset.shapes"):
         instantiate(cfg.dataset)
+
+
+@pytest.mark.parametrize("experiment", [None, "modelnet10", "pascal3d"])
+@pytest.mark.parametrize("model", ["i2s", "fourier_mlp"])
+def test_encoder_keys_reach_the_network(tmp_path, experiment, model):
+    """``encoder=...`` and ``encoder.weights=...`` (the documented keys) set the network's encoder."""
+    extra = [f"experiment={experiment}"] if experiment else []
+    cfg = compose_cfg(tmp_path, [*extra, f"model={model}", "encoder=resnet34", "encoder.weights=IMAGENET1K_V2"])
+    assert cfg.model.net.encoder.depth == 34 and cfg.model.net.encoder.weights == "IMAGENET1K_V2"
+    assert cfg.model.net.encoder._target_ == "image2sphere.nn.ResNetEncoder"

@@ -19,11 +19,13 @@ from image2sphere.nn.projector import HarmonicS2Projector, SpatialS2Projector
 from image2sphere.nn.s2_conv import S2Conv
 from image2sphere.nn.so3_conv import SO3Conv
 from image2sphere.so3.distribution import SO3Distribution
+from image2sphere.so3.grid import so3_tube_grid
 from image2sphere.so3.wigner import check_lmax, n_so3_coeffs
 
 __all__ = ["I2S", "FourierMLP"]
 
 PROJECTORS = ("spatial", "harmonic")
+SO3_KERNELS = ("local", "tube")
 
 
 class _PoseNetwork(nn.Module):
@@ -83,6 +85,14 @@ class I2S(_PoseNetwork):
         so3_kernel_max_deg: support of the SO(3) filter around the identity (22.5 deg).
         activation_resolution: resolution of e3nn's SO(3) grid for the ReLU.
         num_classes: if > 0, the class one-hot is appended to the feature map as constant channels.
+        init: initialisation of the S2 and SO(3) convolutions, ``"fan_in"`` (parameters at the scale
+            that keeps the signal's size, as ``nn.Linear``) or ``"unit"`` (N(0, 1) parameters scaled
+            in the forward pass); see :class:`~image2sphere.nn.S2Conv`.
+        projector_normalization: ``"mean"`` (coefficients independent of the number of projection
+            points) or ``"sqrt"``; see :class:`~image2sphere.nn.SpatialS2Projector`.
+        so3_kernel: support of the SO(3) filter, ``"local"`` (rotations within ``so3_kernel_max_deg``
+            of the identity, as the paper describes) or ``"tube"`` (the original code's grid, see
+            :func:`~image2sphere.so3.so3_tube_grid`).
     """
 
     def __init__(
@@ -105,8 +115,13 @@ class I2S(_PoseNetwork):
         so3_kernel_max_deg: float = 22.5,
         activation_resolution: int = 8,
         num_classes: int = 0,
+        init: str = "fan_in",
+        projector_normalization: str = "mean",
+        so3_kernel: str = "local",
     ):
         super().__init__(encoder, image_size, lmax, num_classes)
+        if so3_kernel not in SO3_KERNELS:
+            raise ValueError(f"so3_kernel must be one of {SO3_KERNELS}, got {so3_kernel!r}")
         if projector not in PROJECTORS:
             raise ValueError(f"projector must be one of {PROJECTORS}, got {projector!r}")
         if n_so3_conv not in (0, 1, 2):
@@ -122,6 +137,7 @@ class I2S(_PoseNetwork):
                 coverage=coverage,
                 sigma=sigma,
                 n_subset=n_subset,
+                normalization=projector_normalization,
             )
         else:
             self.projector = HarmonicS2Projector(
@@ -131,13 +147,17 @@ class I2S(_PoseNetwork):
                 hidden_channels=harmonic_hidden,
             )
         s2_out = so3_channels if n_so3_conv > 0 else 1
-        self.s2_conv = S2Conv(sphere_channels, s2_out, lmax=lmax, filter=filter, kernel_level=s2_kernel_level)
+        self.s2_conv = S2Conv(
+            sphere_channels, s2_out, lmax=lmax, filter=filter, kernel_level=s2_kernel_level, init=init
+        )
+        max_angle = math.radians(so3_kernel_max_deg)
+        kernel = so3_tube_grid(max_angle, dtype=torch.float64) if so3_kernel == "tube" else None
         layers: list[nn.Module] = []
         for i in range(n_so3_conv):
             out = 1 if i == n_so3_conv - 1 else so3_channels
             layers += [
                 SO3ReLU(lmax, activation_resolution),
-                SO3Conv(so3_channels, out, lmax=lmax, max_angle=math.radians(so3_kernel_max_deg)),
+                SO3Conv(so3_channels, out, lmax=lmax, max_angle=max_angle, kernel=kernel, init=init),
             ]
         self.so3_layers = nn.Sequential(*layers)
 
@@ -169,7 +189,14 @@ class FourierMLP(_PoseNetwork):
         layers: list[nn.Module] = []
         for a, b in zip(widths[:-1], widths[1:], strict=True):
             layers += [nn.Linear(a, b), nn.ReLU()]
-        layers.append(nn.Linear(widths[-1], n_so3_coeffs(lmax)))
+        last = nn.Linear(widths[-1], n_so3_coeffs(lmax))
+        # The signal f(R) = sum_l sqrt(2l+1) sum_mn c^l_mn D^l_mn(R) of iid coefficients of variance v has
+        # variance v * n_so3_coeffs: scale the last layer (after a ReLU: Kaiming's gain 2 when hidden)
+        # so that the initial logits have about unit variance and the first loss is close to uniform's.
+        gain = 2.0 if hidden else 1.0
+        nn.init.normal_(last.weight, std=math.sqrt(gain / widths[-1] / n_so3_coeffs(lmax)))
+        nn.init.zeros_(last.bias)
+        layers.append(last)
         self.mlp = nn.Sequential(*layers)
 
     def forward(self, images: torch.Tensor, class_index: torch.Tensor | None = None) -> torch.Tensor:

@@ -40,7 +40,12 @@ class SpatialS2Projector(nn.Module):
     are never read), normalised to sum to one, and scaled by a taper that falls
     linearly from 1 at ``taper_beta`` to 0 at ``max_beta``. In training a random subset of
     ``n_subset`` grid points is used per forward pass (all of them in eval mode); the Fourier
-    coefficients are the discrete projection ``sum_i f(u_i) Y(u_i) / sqrt(n)`` over the points used.
+    coefficients are the discrete projection over the ``n`` points used,
+    ``mean_i f(u_i) Y(u_i)`` (``normalization="mean"``, the default: an estimate of the same
+    coefficients whatever ``n``, so a model trained on random subsets and evaluated on all points
+    sees signals of the same size, and evaluation is deterministic) or ``sum_i f(u_i) Y(u_i) / sqrt(n)``
+    (``"sqrt"``: coefficients ``sqrt(n)`` times larger, so ``sqrt(104 / 20) = 2.3`` times larger on all
+    points of level 2 than on a training subset of 20).
 
     Input ``[B, in_channels, H, W]``; output ``[B, sphere_channels, (lmax+1)^2]``.
     """
@@ -59,9 +64,13 @@ class SpatialS2Projector(nn.Module):
         n_subset: int | None = 20,
         learn_interpolation: bool = True,
         activation: bool = True,
+        normalization: str = "mean",
     ):
         super().__init__()
         self.lmax = check_lmax(lmax)
+        if normalization not in ("mean", "sqrt"):
+            raise ValueError(f"normalization must be 'mean' or 'sqrt', got {normalization!r}")
+        self.normalization = normalization
         h, w = _pair(feature_size)
         if not 0 < coverage <= 1:
             raise ValueError(f"coverage must be in (0, 1], got {coverage!r}")
@@ -123,7 +132,8 @@ class SpatialS2Projector(nn.Module):
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         points = self.sample_points()
         signal = self.project(features, points)  # [B, S, k]
-        return torch.einsum("bsk,kj->bsj", signal, self.Y[points]) / math.sqrt(len(points))  # [B, S, (L+1)^2]
+        n = len(points) if self.normalization == "mean" else math.sqrt(len(points))
+        return torch.einsum("bsk,kj->bsj", signal, self.Y[points]) / n  # [B, S, (L+1)^2]
 
 
 class HarmonicS2Projector(nn.Module):

@@ -6,12 +6,20 @@ Input: S2 coefficients ``x[b, f, (l, m)]`` (real SH, component normalisation, ``
 Filter: S2 coefficients ``psi[f, g, (l, n)]``. Output: SO(3) coefficients in the flat Wigner
 layout (:mod:`image2sphere.so3.wigner`) with
 
-    out^l[b, g][m, n] = sum_f x^l[b, f, m] * psi^l[f, g, n] / sqrt(f_in)
+    out^l[b, g][m, n] = sum_f x^l[b, f, m] * psi^l[f, g, n] * scale
 
-so that ``out_g(R) = sum_f sum_l sqrt(2l+1) x_f^l . (D^l(R) psi_fg^l) / sqrt(f_in)``: the group
+so that ``out_g(R) = sum_f sum_l sqrt(2l+1) x_f^l . (D^l(R) psi_fg^l) * scale``: the group
 convolution ``(x * psi)(R) = <x, psi(R^-1 .)>`` with each band of the filter scaled by sqrt(2l+1)
 (a reparametrisation of the learned filter). Rotating the input by ``Q`` (``x^l -> D^l(Q) x^l``)
 left-translates the output: ``out'(R) = out(Q^-1 R)``.
+
+Initialisation (``init``): ``"fan_in"`` (default) draws the filter at the scale that keeps the
+signal's mean square at init, ``psi ~ N(0, g^2 / f_in)`` with ``g^2 = sum_l (2l+1) / sum_l (2l+1)^2``
+(for an input whose power is spread over the bands like white noise, the output signal
+``out(R)`` then has the input's mean square), and ``scale = 1``: the parameters are the filter
+itself, as in ``nn.Linear``. ``"unit"`` draws ``psi ~ N(0, 1)`` and uses ``scale = 1 / sqrt(f_in)``;
+its output is ``1 / g`` (about 3 at lmax 6) times larger and, with Adam (steps of a fixed size in
+the parameters), its filter moves ``sqrt(f_in) / g`` times more slowly relative to its size.
 """
 
 from __future__ import annotations
@@ -28,6 +36,7 @@ from image2sphere.so3.wigner import check_lmax, n_s2_coeffs, so3_layout
 __all__ = ["S2Conv"]
 
 FILTERS = ("harmonic", "spatial")
+INITS = ("fan_in", "unit")
 
 
 class S2Conv(nn.Module):
@@ -37,6 +46,7 @@ class S2Conv(nn.Module):
         filter: ``"harmonic"``: the filter's SH coefficients are the parameters (I2S default);
             ``"spatial"``: the filter is a weighted sum of point masses on the HEALPix grid of
             ``kernel_level`` restricted to ``beta <= kernel_max_beta`` (global support by default).
+        init: ``"fan_in"`` or ``"unit"``, see the module docstring.
     """
 
     def __init__(
@@ -47,20 +57,29 @@ class S2Conv(nn.Module):
         filter: str = "harmonic",
         kernel_level: int = 2,
         kernel_max_beta: float = math.pi,
+        init: str = "fan_in",
     ):
         super().__init__()
         self.lmax = check_lmax(lmax)
         if filter not in FILTERS:
             raise ValueError(f"filter must be one of {FILTERS}, got {filter!r}")
+        if init not in INITS:
+            raise ValueError(f"init must be one of {INITS}, got {init!r}")
         self.filter_kind = filter
+        self.init = init
         self.in_channels, self.out_channels = in_channels, out_channels
+        degrees = torch.arange(lmax + 1, dtype=torch.float64)
+        gain = math.sqrt(float((2 * degrees + 1).sum() / ((2 * degrees + 1) ** 2).sum()))
+        std = gain / math.sqrt(in_channels) if init == "fan_in" else 1.0
+        self.scale = 1.0 if init == "fan_in" else 1 / math.sqrt(in_channels)
         if filter == "harmonic":
-            self.weight = nn.Parameter(torch.randn(in_channels, out_channels, n_s2_coeffs(lmax)))
+            self.weight = nn.Parameter(torch.randn(in_channels, out_channels, n_s2_coeffs(lmax)) * std)
         else:
             alpha, beta = s2_healpix_grid(kernel_level, max_beta=kernel_max_beta, dtype=torch.float64)
             Y = o3.spherical_harmonics_alpha_beta(list(range(lmax + 1)), alpha, beta, normalization="component")
+            # point masses weighted by 1/sqrt(K): each filter coefficient has about the weights' variance
             self.register_buffer("kernel_Y", Y.float() / math.sqrt(len(alpha)), persistent=False)  # [K, (L+1)^2]
-            self.weight = nn.Parameter(torch.randn(in_channels, out_channels, len(alpha)))
+            self.weight = nn.Parameter(torch.randn(in_channels, out_channels, len(alpha)) * std)
         l_of, m_of, n_of = so3_layout(lmax)
         self.register_buffer("index_x", l_of**2 + m_of, persistent=False)  # [n_so3] -> S2 index of m
         self.register_buffer("index_psi", l_of**2 + n_of, persistent=False)  # [n_so3] -> S2 index of n
@@ -77,4 +96,4 @@ class S2Conv(nn.Module):
             raise ValueError(f"S2 input must have shape (batch, {self.in_channels}, {n}), got {tuple(x.shape)}")
         xs = x[..., self.index_x]  # [B, f_in, n_so3]
         ps = self.filter()[..., self.index_psi]  # [f_in, f_out, n_so3]
-        return torch.einsum("bfi,fgi->bgi", xs, ps) / math.sqrt(self.in_channels)  # [B, f_out, n_so3]
+        return torch.einsum("bfi,fgi->bgi", xs, ps) * self.scale  # [B, f_out, n_so3]

@@ -6,11 +6,16 @@ Signals are in the flat Wigner layout: ``f(R) = sum_l sqrt(2l+1) sum_{mn} F^l[m,
 The filter is a weighted sum of point masses at rotations ``g_k`` within ``max_angle`` of the
 identity; for one input and output channel the convolution is
 
-    out(R) = sum_k w_k f(R g_k) / sqrt(f_in * K),
+    out(R) = sum_k w_k f(R g_k) * scale,
 
 which in the Fourier domain is ``out^l = F^l @ Psi^l^T / sqrt(2l+1)`` with
 ``Psi = sum_k w_k flat_wigner(g_k)``. Rotating the input (``f -> f(Q^-1 .)``) left-translates
 the output the same way: the layer is SO(3)-equivariant.
+
+Initialisation (``init``): ``"fan_in"`` (default) draws ``w ~ N(0, 2 / (f_in * K))`` and uses
+``scale = 1``, like ``nn.Linear`` after a ReLU (Kaiming's gain 2: the layer follows the SO(3)
+ReLU, which halves a zero-mean signal's mean square), so the output has the mean square of the
+signal before that ReLU. ``"unit"`` draws ``w ~ N(0, 1)`` with ``scale = 1 / sqrt(f_in * K)``.
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ class SO3Conv(nn.Module):
         max_angle: support of the filter around the identity (radians; 22.5 deg in the paper).
         axis_level, n_angles: the kernel grid, see :func:`image2sphere.so3.so3_near_identity_grid`.
         kernel: optional explicit kernel rotations ``(K, 3, 3)`` instead of the near-identity grid.
+        init: ``"fan_in"`` or ``"unit"``, see the module docstring.
     """
 
     def __init__(
@@ -44,15 +50,22 @@ class SO3Conv(nn.Module):
         axis_level: int = 1,
         n_angles: int = 3,
         kernel: torch.Tensor | None = None,
+        init: str = "fan_in",
     ):
         super().__init__()
         self.lmax = check_lmax(lmax)
         self.in_channels, self.out_channels = in_channels, out_channels
         if kernel is None:
             kernel = so3_near_identity_grid(max_angle, axis_level, n_angles, dtype=torch.float64)
+        if init not in ("fan_in", "unit"):
+            raise ValueError(f"init must be 'fan_in' or 'unit', got {init!r}")
+        self.init = init
         D = flat_wigner(lmax, kernel.to(torch.float64))  # [K, n_so3]
-        self.register_buffer("kernel_D", D.float() / math.sqrt(len(kernel)), persistent=False)
-        self.weight = nn.Parameter(torch.randn(in_channels, out_channels, len(kernel)))
+        self.register_buffer("kernel_D", D.float(), persistent=False)
+        fan_in = in_channels * len(kernel)
+        std = math.sqrt(2 / fan_in) if init == "fan_in" else 1.0
+        self.scale = 1.0 if init == "fan_in" else 1 / math.sqrt(fan_in)
+        self.weight = nn.Parameter(torch.randn(in_channels, out_channels, len(kernel)) * std)
 
     def filter(self) -> torch.Tensor:
         """The filter's SO(3) coefficients ``[f_in, f_out, n_so3_coeffs]`` (flat Wigner layout)."""
@@ -63,12 +76,11 @@ class SO3Conv(nn.Module):
         if x.ndim != 3 or x.shape[1:] != (self.in_channels, n):
             raise ValueError(f"SO(3) input must have shape (batch, {self.in_channels}, {n}), got {tuple(x.shape)}")
         psi = self.filter()
-        scale = 1 / math.sqrt(self.in_channels)
         out = []
         for l, block in so3_blocks(self.lmax):
             d = 2 * l + 1
             F = x[..., block].unflatten(-1, (d, d))  # [B, f_in, d, d]
             P = psi[..., block].unflatten(-1, (d, d))  # [f_in, f_out, d, d]
-            block = torch.einsum("bfmk,fgnk->bgmn", F, P) * (scale / math.sqrt(d))  # [B, f_out, d, d]
+            block = torch.einsum("bfmk,fgnk->bgmn", F, P) * (self.scale / math.sqrt(d))  # [B, f_out, d, d]
             out.append(block.flatten(-2))
         return torch.cat(out, dim=-1)

@@ -21,6 +21,7 @@ from image2sphere.so3.grid import (
     so3_healpix_index_to_matrix,
     so3_healpix_nearest_index,
     so3_near_identity_grid,
+    so3_tube_grid,
 )
 from image2sphere.so3.grid_eval import HealpixGridEvaluator, check_streamed_level, dense_grid_logits, get_grid_evaluator
 from image2sphere.so3.rotations import (
@@ -89,5 +90,6 @@ __all__ = [
     "so3_healpix_nearest_index",
     "so3_layout",
     "so3_near_identity_grid",
+    "so3_tube_grid",
     "wigner_D",
 ]

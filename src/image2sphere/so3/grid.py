@@ -41,6 +41,7 @@ __all__ = [
     "so3_healpix_index_to_matrix",
     "so3_healpix_nearest_index",
     "so3_near_identity_grid",
+    "so3_tube_grid",
 ]
 
 MAX_LEVEL = 10  # nside 1024: 7.7e10 rotations; the ceiling of index arithmetic (sizes, index <-> rotation)
@@ -182,6 +183,34 @@ def so3_near_identity_grid(
     rotvec = (axes[:, None, :] * angles[None, :, None]).reshape(-1, 3)  # [A*K, 3]
     rotvec = torch.cat([torch.zeros(1, 3, dtype=torch.float64), rotvec])
     return rotvec_to_matrix(rotvec).to(dtype)
+
+
+def so3_tube_grid(
+    max_beta: float = math.pi / 8,
+    n_alpha: int = 7,
+    n_beta: int = 3,
+    n_gamma: int = 8,
+    dtype: torch.dtype = torch.float32,
+) -> torch.Tensor:
+    """Rotations ``(n_alpha * n_beta * n_gamma, 3, 3)`` that tilt the ``y`` axis by at most ``max_beta``.
+
+    YXY angles ``(a, b, g - a)`` for ``a = 2 pi j / n_alpha``, ``b = max_beta k / n_beta``
+    (``k = 1..n_beta``) and ``g`` evenly spaced over ``[-2 pi, 2 pi]`` (both ends included). The
+    turn about ``y`` is unrestricted, so this is a tube around the subgroup of rotations about
+    ``y``, not a neighbourhood of the identity: with the defaults 168 rotations, of which only the
+    42 with ``g = +-2 pi`` lie within ``max_beta`` of the identity. It is the kernel grid of the
+    original I2S research code, offered for comparison (``I2S(so3_kernel="tube")``).
+    """
+    if not 0 < max_beta <= math.pi:
+        raise ValueError(f"max_beta must be in (0, pi], got {max_beta!r}")
+    for name, n in (("n_alpha", n_alpha), ("n_beta", n_beta), ("n_gamma", n_gamma)):
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise ValueError(f"{name} must be an integer >= 1, got {n!r}")
+    a = torch.arange(n_alpha, dtype=torch.float64) * (2 * math.pi / n_alpha)
+    b = torch.arange(1, n_beta + 1, dtype=torch.float64) * (max_beta / n_beta)
+    g = torch.linspace(-2 * math.pi, 2 * math.pi, n_gamma, dtype=torch.float64)
+    A, B, G = torch.meshgrid(a, b, g, indexing="ij")
+    return angles_to_matrix(A.reshape(-1), B.reshape(-1), (G - A).reshape(-1)).to(dtype)
 
 
 def so3_healpix_index_to_angles(index: torch.Tensor, level: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -229,3 +229,27 @@ def test_encoder_keys_reach_the_network(tmp_path, experiment, model):
     cfg = compose_cfg(tmp_path, [*extra, f"model={model}", "encoder=resnet34", "encoder.weights=IMAGENET1K_V2"])
     assert cfg.model.net.encoder.depth == 34 and cfg.model.net.encoder.weights == "IMAGENET1K_V2"
     assert cfg.model.net.encoder._target_ == "image2sphere.nn.ResNetEncoder"
+
+
+FIDELITY = sorted(p.stem for p in (CONF / "experiment" / "fidelity").glob("*.yaml"))
+FIDELITY_KEYS = ("init", "projector_normalization", "so3_kernel", "activation_resolution")
+
+
+def test_fidelity_ablation_files_change_one_thing_each(tmp_path):
+    """experiment=fidelity/<x>: 'before' is the earlier model, each other file one change, 'after' the defaults."""
+    net = {e: compose_cfg(tmp_path, [f"experiment=fidelity/{e}"]).model.net for e in FIDELITY}
+    default = compose_cfg(tmp_path).model.net
+    assert {k: net["after"][k] for k in FIDELITY_KEYS} == {k: default[k] for k in FIDELITY_KEYS}
+    before = {k: net["before"][k] for k in FIDELITY_KEYS}
+    assert before == {
+        "init": "unit",
+        "projector_normalization": "sqrt",
+        "so3_kernel": "local",
+        "activation_resolution": 8,
+    }
+    for name in set(FIDELITY) - {"before", "after"}:
+        changed = [k for k in FIDELITY_KEYS if net[name][k] != before[k]]
+        assert len(changed) == 1, (name, changed)
+    assert {e: compose_cfg(tmp_path, [f"experiment=fidelity/{e}"]).dataset.image_size for e in FIDELITY} == {
+        e: 96 for e in FIDELITY
+    }  # all on the built-in data

@@ -1,0 +1,800 @@
+"""Every command that README.md and the comments of ``conf/**/*.yaml`` show is run here, as written.
+
+The commands are read from the documents themselves, so a changed or added command is tested without
+touching this file:
+
+* README.md: every line of its ```bash blocks (trailing ``# comments`` removed), every inline code span
+  that starts with a command word (``python``, ``pip``, ``wandb``, ``jupyter`` ...), and its ```python
+  blocks;
+* conf/**/*.yaml: comment lines of the form ``#   python -m ...`` and code spans in comments.
+
+Optional arguments in square brackets are run when they are concrete (``[top_k=5]``) and left out when
+they are placeholders (``[dataset=...]``; their names must still be config keys or groups). Identical
+commands are run once. Each command runs in a scratch directory that stands in for the repository root:
+``data`` and ``ROOT`` link to tiny copies of the published datasets
+(``python -m image2sphere.data.fixtures``), ``logs/train/runs/<run>`` to a checkpoint trained once
+here, ``benchmarks`` to this checkout's. Placeholders are filled in: ``<run>`` and ``ckpt_path=...``
+(that checkpoint), ``/data/symsol`` and ``/path/to/symsol`` (``data/symsol``), image files named by
+``image=`` (written here). The documented arguments are never changed or removed; the only additions
+(never for a key the command sets itself) are
+
+* training: ``trainer.fast_dev_run=true`` and ``paths.*`` into the scratch directory, plus the small
+  data and network settings of ``test_train_entry`` (``TINY``, ``SMOKE``) where every job's composed
+  config has that key, except for the headline ``python -m src.train``, which runs its real default
+  config for one batch; a resumed run gets only ``fast_dev_run``, ``logger=none`` and the paths;
+* ``encoder.weights=IMAGENET1K_*``: torchvision cannot download here (the proxy variables point at a
+  closed local port, ``TORCH_HOME`` is empty), so these runs must fail exactly at that download, for
+  the weights and ResNet depth each job asks for, and not in the config;
+* ``python benchmarks/grid_eval.py`` (about two minutes) runs until its level-3 comparison is printed;
+* ``pip install`` lines are compared with what ``.ci/run`` installs; ``python -m pytest`` is not run
+  inside the suite: ``.ci/run`` must end with exactly that command;
+* external tools (``SKIPPED``) are listed with the reason they are not run.
+
+Marked slow (run by the full suite only): the benchmark, training sweeps of more than four jobs, and
+commands that only config comments show (variants of README commands that the quick run covers).
+"""
+
+from __future__ import annotations
+
+import ast
+import itertools
+import os
+import re
+import shlex
+import signal
+import subprocess
+import sys
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+import yaml
+from PIL import Image
+
+import image2sphere  # noqa: F401  (before torchvision, which check_pretrained_download imports)
+from test_train_entry import ENV, SMOKE, TINY, run_train
+
+REPO = Path(__file__).resolve().parents[1]
+README = REPO / "README.md"
+CI = REPO / ".ci" / "run"
+
+# first words of inline code spans that are commands (the rest of the README's spans are keys and values)
+COMMAND_WORDS = ("python", "pip", "wandb", "jupyter", "sbatch", "srun", "bash", "sh", "git", "conda", "tensorboard")
+
+# external tools: not run here. Keys are the command's first two words (environment assignments removed).
+SKIPPED = {
+    "wandb sync": "uploads an offline run to wandb.ai: needs an account and network",
+    "wandb login": "stores an API key for wandb.ai: needs an account and network",
+    "jupyter lab": "starts an interactive server (jupyterlab is not a dependency); tests/test_notebooks.py runs "
+    "the notebooks with nbclient",
+    "tensorboard --logdir": "starts a web server that runs until stopped",
+}
+
+PATH_PLACEHOLDERS = {"/data/symsol": "data/symsol", "/path/to/symsol": "data/symsol"}
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+PRETRAINED = re.compile(r"^encoder\.weights=(IMAGENET1K_V\d)$")
+CONFIG_ERRORS = ("not in struct", "ConfigAttributeError", "Could not override", "ConfigCompositionException",
+                 "MissingConfigException", "Could not find")  # fmt: skip
+
+
+# ------------------------------------------------------------------------------------------ extraction
+@dataclass
+class Command:
+    text: str  # as documented, trailing comment removed
+    where: list[str] = field(default_factory=list)  # file:line of every place that shows it
+
+
+def _strip_comment(line: str) -> str:
+    return re.sub(r"\s+#\s.*$", "", line).strip()
+
+
+def _fenced_blocks(text: str) -> list[tuple[str, int, list[str]]]:
+    """``(language, line number of the first content line, lines)`` of every fenced block."""
+    blocks, lang, start, lines = [], None, 0, []
+    for number, line in enumerate(text.splitlines(), 1):
+        fence = re.match(r"^\s*```\s*([\w+-]*)\s*$", line)
+        if fence and lang is None:
+            lang, start, lines = fence.group(1) or "text", number + 1, []
+        elif fence:
+            blocks.append((lang, start, lines))
+            lang = None
+        elif lang is not None:
+            lines.append(line)
+    assert lang is None, "README.md has an unclosed code fence"
+    return blocks
+
+
+def _outside_fences(text: str) -> str:
+    """``text`` with the lines of fenced blocks blanked (line numbers kept)."""
+    out, inside = [], False
+    for line in text.splitlines():
+        fence = re.match(r"^\s*```", line)
+        out.append("" if fence or inside else line)
+        inside = inside != bool(fence)
+    return "\n".join(out)
+
+
+def inline_spans(text: str) -> list[tuple[int, str]]:
+    """``(line, span)`` of the inline code spans outside fenced blocks (a span may wrap onto the next line)."""
+    prose = _outside_fences(text)
+    return [(prose.count("\n", 0, m.start()) + 1, " ".join(m.group(1).split()))
+            for m in re.finditer(r"`([^`]+)`", prose) if "\n\n" not in m.group(1)]  # fmt: skip
+
+
+def _first_words(text: str, n: int = 1) -> str:
+    words = [w for w in text.split() if not re.match(r"^[A-Z_][A-Z0-9_]*=", w)]  # VAR=value prefixes
+    return " ".join(words[:n])
+
+
+def _is_command_span(span: str) -> bool:
+    return _first_words(span) in COMMAND_WORDS and len(span.split()) > 1
+
+
+def readme_commands() -> list[tuple[str, str]]:
+    """``(command, README.md:line)`` of every command README.md shows, in order."""
+    text = README.read_text()
+    found = []
+    for lang, start, lines in _fenced_blocks(text):
+        if lang not in ("bash", "sh", "shell", "console"):
+            continue
+        joined: list[tuple[int, str]] = []
+        for offset, line in enumerate(lines):
+            if joined and joined[-1][1].endswith("\\"):
+                joined[-1] = (joined[-1][0], joined[-1][1][:-1] + " " + line.strip())
+            else:
+                joined.append((start + offset, line.strip()))
+        for number, line in joined:
+            command = _strip_comment(line)
+            if command and not command.startswith("#"):
+                found.append((command, f"README.md:{number}"))
+    for number, span in inline_spans(text):
+        if _is_command_span(span):
+            found.append((span, f"README.md:{number}"))
+    return found
+
+
+def readme_python_blocks() -> list[tuple[str, str]]:
+    return [("\n".join(lines), f"README.md:{start}") for lang, start, lines in _fenced_blocks(README.read_text())
+            if lang == "python"]  # fmt: skip
+
+
+def config_commands() -> list[tuple[str, str]]:
+    """``(command, file:line)`` of the commands shown in the comments of conf/**/*.yaml."""
+    found = []
+    for path in sorted((REPO / "conf").rglob("*.yaml")):
+        where = path.relative_to(REPO).as_posix()
+        for number, line in enumerate(path.read_text().splitlines(), 1):
+            comment = re.match(r"^\s*#(.*)$", line)
+            if not comment:
+                continue
+            shown = re.match(r"^\s+((?:python|pip)\s.*)$", comment.group(1))
+            if shown:
+                found.append((shown.group(1).strip(), f"{where}:{number}"))
+            else:
+                found += [(s.strip(), f"{where}:{number}") for s in re.findall(r"`([^`]+)`", comment.group(1))
+                          if _is_command_span(s.strip())]  # fmt: skip
+    return found
+
+
+OPTIONAL = re.compile(r"(?<!\S)\[([^\[\]]*)\](?!\S)")
+
+
+def expand_optional(text: str) -> tuple[str, list[str]]:
+    """The command with its concrete optional arguments (``[top_k=5]`` -> ``top_k=5``) and without its
+    placeholder ones (``[dataset=...]``), and the placeholder groups left out."""
+    left_out: list[str] = []
+
+    def replace(match: re.Match) -> str:
+        if "..." in match.group(1):
+            left_out.append(match.group(1))
+            return ""
+        return match.group(1)
+
+    return " ".join(OPTIONAL.sub(replace, text).split()), left_out
+
+
+def documented_commands() -> list[Command]:
+    """Every distinct command (after :func:`expand_optional`) with all the places that show it."""
+    commands: dict[str, Command] = {}
+    for text, where in readme_commands() + config_commands():
+        key = expand_optional(text)[0]
+        commands.setdefault(key, Command(key)).where.append(where)
+    return list(commands.values())
+
+
+COMMANDS = documented_commands()
+
+
+def _placeholders_of(text: str) -> list[str]:
+    for raw, _ in readme_commands() + config_commands():
+        if expand_optional(raw)[0] == text:
+            yield from expand_optional(raw)[1]
+
+
+def test_extraction_finds_the_documented_commands():
+    texts = [c.text for c in COMMANDS]
+    assert len(COMMANDS) >= 30, texts
+    expected = [
+        "python -m src.train",
+        "python -m pytest",
+        'pip install -e ".[dev]"',
+        "pip install torch==2.13.0 torchvision==0.28.0",
+        "python -m src.train dataset=symsol2 dataset.shape=cylO",
+        "python -m src.train experiment=modelnet10 encoder.weights=IMAGENET1K_V2",
+        "python -m src.train -m lmax=4,6 encoder=resnet18,resnet34",
+        "python -m src.train hparams_search=lmax",
+        "python -m src.train ckpt_path=logs/train/runs/<run>/checkpoints/last.ckpt",
+        "python -m src.eval ckpt_path=... dataset=symsol1 dataset.root=/data/symsol eval_grid_level=4 batch_size=16",
+        "python -m image2sphere.data.verify symsol data/symsol",
+        "python -m image2sphere.data.fixtures ROOT",
+        "python benchmarks/grid_eval.py",
+    ]
+    for command in expected:
+        assert command in texts, f"{command!r} is no longer found in the documents: {texts}"
+    assert any(t.startswith("python -m src.predict ckpt_path=") for t in texts)
+    assert any(t.startswith("python -m image2sphere.data.render ") for t in texts)
+    assert any(t.startswith("python -m src.train -m experiment=") for t in texts)  # the paper's sweeps
+    # both sources are read: the README's headline and a command that only a config comment shows
+    where = {c.text: c.where for c in COMMANDS}
+    assert any(w.startswith("README.md:") for w in where["python -m src.train"])
+    assert any(w.startswith("conf/train.yaml:") for w in where["python -m src.train"])
+    assert any(w.startswith("conf/experiment/") for t in texts for w in where[t] if "experiment=pascal3d" in t)
+    # no fenced block hides commands from the extractor: every bash block yields at least one
+    readme = README.read_text()
+    bash_blocks = [b for b in _fenced_blocks(readme) if b[0] == "bash"]
+    assert len(bash_blocks) >= 10
+    for _, start, lines in bash_blocks:
+        assert any(w == f"README.md:{start + i}" for i in range(len(lines)) for c in COMMANDS for w in c.where), (
+            f"the bash block at README.md:{start} yields no command"
+        )
+    assert len(readme_python_blocks()) >= 2
+    # every command word has a runner or is skipped with a reason (see test_documented_command)
+    for command in COMMANDS:
+        assert _first_words(command.text) in ("python", "pip") or _first_words(command.text, 2) in SKIPPED, command
+
+
+def test_extraction_handles_comments_continuations_and_optional_arguments():
+    assert _strip_comment("python -m src.train   # renders a set") == "python -m src.train"
+    assert _strip_comment("python -m src.train dataset=symsol1") == "python -m src.train dataset=symsol1"
+    text, left_out = expand_optional("python -m src.predict image=a.jpg [class_index=...] [output=plot.png]")
+    assert text == "python -m src.predict image=a.jpg output=plot.png" and left_out == ["class_index=..."]
+    assert expand_optional("python -m src.train dataset.shapes=[cube,cone]")[0].endswith("dataset.shapes=[cube,cone]")
+    blocks = _fenced_blocks("x\n```bash\na \\\n  b\n```\n```python\nc\n```\n")
+    assert blocks == [("bash", 3, ["a \\", "  b"]), ("python", 7, ["c"])]
+    assert _is_command_span("I2S_CHECKPOINT=... jupyter lab notebooks/") and not _is_command_span("encoder=resnet50")
+    assert _first_words("I2S_CHECKPOINT=... jupyter lab notebooks/", 2) == "jupyter lab"
+    spans = inline_spans("a `python -m x\n  --y 1` b\n```bash\n`not a span`\n```\n`c`")
+    assert spans == [(1, "python -m x --y 1"), (6, "c")]
+
+
+def test_skip_list_holds_only_external_tools_that_are_documented():
+    assert set(SKIPPED) == {"wandb sync", "wandb login", "jupyter lab", "tensorboard --logdir"}
+    assert all(key.split()[0] not in ("python", "pip") for key in SKIPPED)
+    shown = {_first_words(c.text, 2) for c in COMMANDS}
+    assert set(SKIPPED) <= shown, f"skip entries no document shows any more: {set(SKIPPED) - shown}"
+
+
+def test_placeholder_arguments_name_real_keys():
+    """``[dataset=... experiment=...]``-style placeholders are left out of the runs; their names must exist."""
+    groups = {p.name for p in (REPO / "conf").iterdir() if p.is_dir()}
+    tops = {}
+    for name in ("train", "eval", "predict"):
+        tops[name] = set(yaml.safe_load((REPO / "conf" / f"{name}.yaml").read_text()))
+    checked = 0
+    for command in COMMANDS:
+        entry = re.match(r"python -m src\.(train|eval|predict)\b", command.text)
+        for group in _placeholders_of(command.text):
+            for token in group.split():
+                if token.endswith("=...") and token not in ("group=...", "key=..."):
+                    name = token[: -len("=...")]
+                    assert entry and (name in groups or name in tops[entry.group(1)]), (command.text, token)
+                    checked += 1
+    assert checked >= 3
+
+
+# ------------------------------------------------------------------------------------------ fixtures
+@pytest.fixture(scope="module")
+def fixtures_root(tmp_path_factory) -> Path:
+    from image2sphere.data.fixtures.__main__ import main
+
+    root = tmp_path_factory.mktemp("documented") / "data"
+    assert main([str(root)]) == 0
+    return root
+
+
+@pytest.fixture(scope="module")
+def checkpoint_run(fixtures_root, tmp_path_factory) -> Path:
+    """A run directory with ``checkpoints/last.ckpt``: one epoch of the tiny default run."""
+    run = tmp_path_factory.mktemp("checkpoint") / "tiny_run"
+    run_train(["trainer.max_epochs=1", "logger=none", f"hydra.run.dir={run}"], fixtures_root, run.parent / "logs")
+    assert (run / "checkpoints" / "last.ckpt").is_file()
+    return run
+
+
+@dataclass
+class Workspace:
+    root: Path  # stands in for the repository root
+    run: Path  # logs/train/runs/<run> (a link to the checkpoint's run)
+    env: dict
+
+    @property
+    def ckpt(self) -> str:
+        return f"logs/train/runs/{self.run.name}/checkpoints/last.ckpt"
+
+
+def make_workspace(root: Path, fixtures: Path, checkpoint_run: Path, with_root_link: bool = True) -> Workspace:
+    root.mkdir(parents=True)
+    (root / "data").symlink_to(fixtures, target_is_directory=True)
+    if with_root_link:
+        (root / "ROOT").symlink_to(fixtures, target_is_directory=True)
+    (root / "benchmarks").symlink_to(REPO / "benchmarks", target_is_directory=True)
+    runs = root / "logs" / "train" / "runs"
+    runs.mkdir(parents=True)
+    (runs / checkpoint_run.name).symlink_to(checkpoint_run, target_is_directory=True)
+    closed = "http://127.0.0.1:9"  # nothing listens there: any download fails at once
+    env = {k: v for k, v in ENV.items() if k.lower() not in ("http_proxy", "https_proxy", "no_proxy", "all_proxy")}
+    env.update(
+        PYTHONPATH=os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]),
+        TORCH_HOME=str(root.parent / "torch_home"),
+        HTTP_PROXY=closed, HTTPS_PROXY=closed, http_proxy=closed, https_proxy=closed,
+        WANDB_MODE="offline", HYDRA_FULL_ERROR="0",
+        # one thread: on 2 shared cores, two OpenMP threads per process made the default run 6x slower
+        OMP_NUM_THREADS="1",
+    )  # fmt: skip
+    return Workspace(root, runs / checkpoint_run.name, env)
+
+
+# ------------------------------------------------------------------------------------------ running
+def override_key(arg: str) -> str:
+    return arg.split("=", 1)[0].lstrip("+~")
+
+
+def fill_placeholders(args: list[str], ws: Workspace) -> list[str]:
+    out = []
+    for arg in args:
+        key, eq, value = arg.partition("=") if "=" in arg else ("", "", arg)
+        if eq and key == "ckpt_path" and value == "...":
+            value = ws.ckpt
+        value = value.replace("logs/train/runs/<run>", f"logs/train/runs/{ws.run.name}")
+        value = value.replace("<run>", f"logs/train/runs/{ws.run.name}")
+        value = PATH_PLACEHOLDERS.get(value, value)
+        out.append(f"{key}={value}" if eq else value)
+    for arg in out:
+        assert "<" not in arg and "..." not in arg, f"a placeholder this test does not know: {arg!r}"
+    return out
+
+
+def write_image(path: Path) -> None:
+    import numpy as np
+
+    pixels = np.random.default_rng(0).integers(0, 256, size=(64, 64, 3), dtype=np.uint8)
+    Image.fromarray(pixels).save(path)
+
+
+def run_in(ws: Workspace, argv: list[str], timeout: float = 600) -> subprocess.CompletedProcess:
+    return subprocess.run(argv, cwd=ws.root, env=ws.env, capture_output=True, text=True, timeout=timeout)
+
+
+def describe(argv: list[str], proc: subprocess.CompletedProcess | None = None, out: str = "", err: str = "") -> str:
+    if proc is not None:
+        out, err = proc.stdout, proc.stderr
+    return f"\ncommand: {shlex.join(argv)}\n--- stdout (tail)\n{out[-3000:]}\n--- stderr (tail)\n{err[-5000:]}"
+
+
+def sweep_values(args: list[str]) -> dict[str, list[str]]:
+    """The swept keys of a multirun and their values (command-line lists and hparams_search files)."""
+    multirun = "-m" in args or "--multirun" in args
+    swept: dict[str, list[str]] = {}
+    for arg in args:
+        if arg.startswith("hparams_search="):
+            conf = yaml.safe_load((REPO / "conf" / "hparams_search" / f"{arg.split('=', 1)[1]}.yaml").read_text())
+            for key, values in conf["hydra"]["sweeper"]["params"].items():
+                swept[key] = [str(v).strip() for v in str(values).split(",")]
+            multirun = True
+    if multirun:
+        for arg in args:
+            if "=" in arg and not arg.startswith("-") and "," in arg.split("=", 1)[1] and "[" not in arg:
+                swept[override_key(arg)] = arg.split("=", 1)[1].split(",")
+    return swept
+
+
+def job_overrides(args: list[str]) -> list[list[str]]:
+    """The overrides of each job the documented command launches (one for a single run)."""
+    sweep = sweep_values(args)
+    fixed = [a for a in args if "=" in a and not a.startswith("-") and override_key(a) not in sweep]
+    combos = itertools.product(*[[f"{key}={v}" for v in values] for key, values in sweep.items()])
+    return [fixed + list(combo) for combo in combos]
+
+
+def compose_train(overrides: list[str]):
+    """``conf/train.yaml`` composed in this process with ``overrides`` (not resolved)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        return compose(config_name="train", overrides=overrides)
+
+
+def train_additions(args: list[str], ws: Workspace) -> list[str]:
+    """What this test appends to a documented ``python -m src.train``: never a key the command sets, and
+    the small data and network settings only where every job's config has that key (e.g. the render
+    sizes only for the built-in rendered set, the I2S layer sizes not for the MLP baseline)."""
+    from omegaconf import OmegaConf
+
+    overrides = [a for a in args if "=" in a and not a.startswith("-")]
+    keys = {override_key(a) for a in overrides} | set(sweep_values(args))
+    paths = [f"paths.data_dir={ws.root / 'data'}", f"paths.log_dir={ws.root / 'logs'}"]
+    if not overrides:  # the headline: the real default config, one batch
+        return ["trainer.fast_dev_run=true", f"paths.data_dir={ws.root / 'fresh_data'}", paths[1]]
+    if "ckpt_path" in keys:  # the checkpoint brings its own tiny config
+        return [a for a in ["trainer.fast_dev_run=true", "logger=none", *paths] if override_key(a) not in keys]
+    configs = [compose_train(job) for job in job_overrides(args)]
+    out, seen = [], set(keys)
+    for arg in ["trainer.fast_dev_run=true", *SMOKE, *TINY, *paths]:
+        key = override_key(arg)
+        if key in seen or any(OmegaConf.select(c, key, default="<absent>", throw_on_resolution_failure=False)
+                              == "<absent>" for c in configs):  # fmt: skip
+            continue
+        out.append(arg)
+        seen.add(key)
+    return out
+
+
+def _parse_value(text: str):
+    return yaml.safe_load(text) if text not in ("", "null") else None
+
+
+def _select(cfg: dict, key: str):
+    node = cfg
+    for part in key.split("."):
+        assert isinstance(node, dict) and part in node, f"{key} is not in the run's config"
+        node = node[part]
+    return node
+
+
+def assert_overrides_applied(config_file: Path, choices: dict, overrides: list[str], sweep: dict) -> None:
+    """Each documented ``key=value`` (not swept) is in the run's config, each ``group=option`` chosen."""
+    cfg = yaml.safe_load(config_file.read_text())
+    for arg in overrides:
+        key, value = override_key(arg), arg.split("=", 1)[1]
+        if key in sweep or key in ("ckpt_path", "hparams_search") or key.startswith(("paths.", "hydra.")):
+            continue
+        if "." in key or key in cfg and not isinstance(cfg.get(key), dict):
+            assert _select(cfg, key) == _parse_value(value), f"{arg}: the run used {_select(cfg, key)!r}"
+        elif choices:
+            assert choices.get(key) == value, f"{arg}: the run chose {key}={choices.get(key)!r}"
+
+
+def _job_dirs(ws: Workspace, kind: str) -> list[Path]:
+    logs = ws.root / "logs"
+    if kind == "runs":
+        return sorted(p for p in logs.glob("*/runs/*") if p.is_dir() and not p.is_symlink())
+    return sorted(p for p in logs.glob("*/multiruns/*/*") if p.is_dir() and p.name.isdigit())
+
+
+def _choices(run_dir: Path) -> dict:
+    hydra_yaml = run_dir / ".hydra" / "hydra.yaml"
+    return yaml.safe_load(hydra_yaml.read_text())["hydra"]["runtime"]["choices"] if hydra_yaml.is_file() else {}
+
+
+def check_pretrained_download(argv, proc, args: list[str], weights: str) -> None:
+    """The run composed and built its encoder, which asked torchvision for exactly ``weights``."""
+    from torchvision.models import get_weight  # after image2sphere (imported above)
+
+    info = describe(argv, proc)
+    assert proc.returncode != 0, "the download cannot succeed here" + info
+    for marker in CONFIG_ERRORS:
+        assert marker not in proc.stderr + proc.stdout, f"a config error ({marker}), not the download" + info
+    from image2sphere.training import register_resolvers
+
+    register_resolvers()
+    urls, depths = [], []
+    for job in job_overrides(args):
+        depths.append(int(compose_train(job).encoder.depth))
+        urls.append(get_weight(f"ResNet{depths[-1]}_Weights.{weights}").url)
+    output = proc.stdout + proc.stderr
+    downloads = re.findall(r'Downloading: "([^"]+)"', output)
+    assert sorted(downloads) == sorted(urls), f"expected downloads of {urls}" + info
+    assert f"could not load torchvision weights ResNet{depths[0]}_Weights.{weights}" in output, info
+    assert "Connection refused" in output or "urlopen error" in output, info
+
+
+def test_pretrained_check_fails_on_a_config_error_or_other_weights():
+    args = ["experiment=modelnet10", "encoder.weights=IMAGENET1K_V2"]
+    url = "https://download.pytorch.org/models/resnet50-11ad3fa6.pth"
+    download = (
+        f'Downloading: "{url}" to /tmp/x\ncould not load torchvision weights ResNet50_Weights.IMAGENET1K_V2 '
+        "(<urlopen error [Errno 111] Connection refused>)"
+    )
+    check_pretrained_download([], subprocess.CompletedProcess([], 1, "", download), args, "IMAGENET1K_V2")
+    wrong_key = "Could not override 'encoder.weight'.\nKey 'weight' is not in struct"
+    with pytest.raises(AssertionError, match="config error"):
+        check_pretrained_download([], subprocess.CompletedProcess([], 1, "", wrong_key), args, "IMAGENET1K_V2")
+    other = download.replace("resnet50-11ad3fa6", "resnet50-0676ba61").replace("V2", "V1")
+    with pytest.raises(AssertionError, match="expected downloads"):
+        check_pretrained_download([], subprocess.CompletedProcess([], 1, "", other), args, "IMAGENET1K_V2")
+
+
+def check_train(argv, proc, args: list[str], ws: Workspace) -> None:
+    info = describe(argv, proc)
+    assert proc.returncode == 0, info
+    overrides = [a for a in args if "=" in a and not a.startswith("-")]
+    sweep = sweep_values(args)
+    if sweep:
+        jobs = _job_dirs(ws, "multiruns")
+        expected = 1
+        for values in sweep.values():
+            expected *= len(values)
+        assert len(jobs) == expected, f"{len(jobs)} job directories, expected {expected}" + info
+        ran = set()
+        for job in jobs:
+            assert (job / "metrics.json").is_file(), f"{job} has no metrics.json" + info
+            ran |= set(yaml.safe_load((job / ".hydra" / "overrides.yaml").read_text()))
+            assert_overrides_applied(job / ".hydra" / "config.yaml", _choices(job), overrides, sweep)
+        for key, values in sweep.items():
+            assert {f"{key}={v}" for v in values} <= ran, f"not every value of {key} ran: {sorted(ran)}" + info
+        return
+    (run,) = _job_dirs(ws, "runs")
+    assert (run / "metrics.json").is_file(), info
+    assert not (run / "checkpoints").exists(), "fast_dev_run must not write checkpoints" + info
+    assert not any((run / d).exists() for d in ("wandb", "csv", "tensorboard")), "fast_dev_run: no logger files"
+    if "ckpt_path" in {override_key(a) for a in overrides}:
+        assert "Resuming from" in proc.stdout + proc.stderr, info
+        explicit = [a for a in overrides if override_key(a) != "ckpt_path"]
+        said = re.search(r"from the command line: (.*)", proc.stdout + proc.stderr)
+        for arg in explicit:  # the log says which keys came from the command line
+            assert said and override_key(arg) in said.group(1).split(", "), info
+        assert_overrides_applied(run / "resumed_config.yaml", {}, explicit, sweep)
+    else:
+        assert_overrides_applied(run / ".hydra" / "config.yaml", _choices(run), overrides, sweep)
+    if not overrides:  # the README's description of the default run
+        metrics = yaml.safe_load((run / "metrics.json").read_text())
+        assert {"log_likelihood", "spread_deg", "acc15", "acc30", "median_error_deg"} <= set(metrics), metrics
+        (rendered,) = (ws.root / "fresh_data" / "symsol_rendered").iterdir()
+        assert rendered.name == "cube-cone_96px_train2400_test200_seed0", rendered.name
+
+
+def check_eval(argv, proc, args: list[str], ws: Workspace) -> None:
+    info = describe(argv, proc)
+    assert proc.returncode == 0, info
+    (run,) = _job_dirs(ws, "runs")
+    metrics = yaml.safe_load((run / "metrics.json").read_text())
+    given = {override_key(a): a.split("=", 1)[1] for a in args if "=" in a}
+    assert metrics["eval_grid_level"] == int(given.get("eval_grid_level", 5)), metrics
+    assert metrics["refine"] is (given.get("refine") == "true"), metrics
+    assert metrics["n_images"] > 0 and (run / "metrics.md").is_file(), info
+    if given.get("dataset") == "symsol1":
+        assert {f"log_likelihood/{s}" for s in ("tet", "cube", "icosa", "cone", "cyl")} <= set(metrics), metrics
+    overrides = [a for a in args if override_key(a) != "ckpt_path"]
+    assert_overrides_applied(run / ".hydra" / "config.yaml", _choices(run), overrides, {})
+
+
+def check_predict(argv, proc, args: list[str], ws: Workspace) -> None:
+    info = describe(argv, proc)
+    assert proc.returncode == 0, info
+    given = {override_key(a): a.split("=", 1)[1] for a in args if "=" in a}
+    assert "mode 1: mass" in proc.stdout or "no modes" in proc.stdout, info
+    image = Path(given["image"])
+    plot = ws.root / given.get("output", str(image.with_name(f"{image.stem}_so3.png")))
+    assert plot.is_file() and plot.stat().st_size > 1000, f"no plot at {plot}" + info
+    if "top_k" in given and "mode 1: mass" in proc.stdout:
+        assert len(re.findall(r"^mode \d+: mass", proc.stdout, re.M)) <= int(given["top_k"])
+
+
+def check_verify(argv, proc, args: list[str], ws: Workspace) -> None:
+    """The fixtures are complete and readable but far smaller than the releases: only counts may differ."""
+    info = describe(argv, proc)
+    assert proc.returncode in (0, 1), info
+    assert " at data/" in proc.stdout and "Traceback" not in proc.stderr, info
+    assert "problems:" not in proc.stdout and "unreadable files:" not in proc.stdout, info
+    rows = re.findall(r"^  (\S.*?)\s+(\d+)\s+(\d+|-)(  <-- mismatch)?$", proc.stdout, re.M)
+    # every class the release has images of is found in the copy (only the numbers differ)
+    assert rows and all(int(found) > 0 for _, found, expected, _ in rows if expected not in ("-", "0")), info
+    assert (proc.returncode == 1) == any(flag for *_, flag in rows), info
+    if "--synthetic" in args:
+        assert "synthetic images/" in proc.stdout, info
+
+
+def check_fixtures(argv, proc, args: list[str], ws: Workspace) -> None:
+    assert proc.returncode == 0, describe(argv, proc)
+    root = ws.root / args[-1]
+    names = {"symsol", "ModelNet10-SO3", "PASCAL3D+_release1.1", "syn_images_cropped_bkg_overlaid"}
+    assert {p.name for p in root.iterdir()} == names, describe(argv, proc)
+
+
+def check_render(argv, proc, args: list[str], ws: Workspace) -> None:
+    import numpy as np
+
+    from image2sphere.data.render import _build_parser
+
+    assert proc.returncode == 0, describe(argv, proc)
+    options = _build_parser().parse_args(args[2:])  # what the documented arguments ask for
+    root = ws.root / options.root
+    for split in ("train", "test"):
+        with np.load(root / split / "rotations.npz", allow_pickle=False) as npz:
+            assert sorted(npz.files) == sorted(options.shapes)
+        images = sorted((root / split / "images").glob("*.png"))
+        assert len(images) == getattr(options, split) * len(options.shapes), (split, len(images))
+        assert Image.open(images[0]).size == (options.image_size, options.image_size)
+
+
+def check_benchmark(argv, ws: Workspace, seconds: float = 120) -> None:
+    """Runs the documented benchmark until its level-3 comparison is complete (or it ends): it must pass."""
+    env = {**ws.env, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(argv, cwd=ws.root, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)  # fmt: skip
+    lines: list[str] = []
+    timer = threading.Timer(seconds, os.killpg, (proc.pid, signal.SIGKILL))
+    timer.start()
+    try:
+        for line in proc.stdout:
+            lines.append(line)
+            if line.startswith("=== level 4"):  # level 3 is complete: enough to know the command works
+                break
+    finally:
+        timer.cancel()
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)  # the benchmark and its peak-RSS children
+        proc.wait()
+    out = "".join(lines)
+    info = describe(argv, out=out)
+    assert "Traceback" not in out and "FAIL" not in out, info
+    assert "=== level 3:" in out and "check argmax: 64/64" in out, info
+    if "=== level 4" not in out:  # it ended before level 4 (other levels asked for): it must have succeeded
+        assert proc.returncode == 0 and "total benchmark time" in out, info
+
+
+def test_benchmark_command_line_parses():
+    proc = subprocess.run([sys.executable, "benchmarks/grid_eval.py", "--help"], cwd=REPO, capture_output=True,
+                          text=True, timeout=120)  # fmt: skip
+    assert proc.returncode == 0 and "--levels" in proc.stdout and "--dense-level5" in proc.stdout, proc.stderr
+
+
+def check_pip(command: str) -> None:
+    """A README ``pip install`` line installs what ``.ci/run`` installs (same packages, same pins)."""
+
+    def tokens(line: str) -> list[str]:
+        words = shlex.split(line)
+        return words[2:] if words[:2] == ["python", "-m"] else words
+
+    ci = [tokens(line) for line in CI.read_text().splitlines() if "pip install" in line and not line.startswith("#")]
+    assert tokens(command) in ci, f"{command!r} is not what .ci/run installs: {ci}"
+    pins = {w.split("==")[0]: w for w in tokens(command) if "==" in w}
+    project = (REPO / "pyproject.toml").read_text()
+    for name, pin in pins.items():
+        assert f'"{pin}"' in project, f"pyproject.toml does not pin {pin}"
+        assert name in project
+
+
+def check_pytest(command: str) -> None:
+    lines = [ln.strip() for ln in CI.read_text().splitlines() if ln.strip() and not ln.strip().startswith("#")]
+    assert lines[-1] == command, f".ci/run ends with {lines[-1]!r}, not the README's test command {command!r}"
+
+
+def _param(command: Command):
+    """A parametrized case. Slow: the benchmark, training sweeps of more than four jobs, and commands that
+    only config comments show (variants of the README's, which the quick run covers)."""
+    words = shlex.split(command.text)
+    slow = words[:2] == ["python", "benchmarks/grid_eval.py"]
+    slow = slow or not any(w.startswith("README.md:") for w in command.where) and _first_words(command.text) == "python"
+    if words[:3] == ["python", "-m", "src.train"] and not any(PRETRAINED.match(w) for w in words):
+        slow = slow or len(job_overrides(words[3:])) > 4
+    return pytest.param(command, id=command.text, marks=[pytest.mark.slow] if slow else [])
+
+
+@pytest.mark.parametrize("command", [_param(c) for c in COMMANDS])
+def test_documented_command(command: Command, fixtures_root, checkpoint_run, tmp_path):
+    text = command.text
+    skip = SKIPPED.get(_first_words(text, 2))
+    if skip:
+        pytest.skip(f"not run: {skip}")
+    words = shlex.split(text)
+    if words[:2] == ["pip", "install"]:
+        return check_pip(text)
+    if words == ["python", "-m", "pytest"]:
+        return check_pytest(text)
+    assert words[0] == "python", f"no runner for {text!r} (shown at {command.where})"
+    fixtures_cmd = words[1:3] == ["-m", "image2sphere.data.fixtures"]
+    ws = make_workspace(tmp_path / "repo", fixtures_root, checkpoint_run, with_root_link=not fixtures_cmd)
+    args = fill_placeholders(words[1:], ws)
+    for arg in args:
+        if arg.startswith("image=") and not (ws.root / arg.split("=", 1)[1]).exists():
+            write_image(ws.root / arg.split("=", 1)[1])
+    argv = [sys.executable, *args]
+    if args[0] == "benchmarks/grid_eval.py":
+        return check_benchmark(argv, ws)
+    assert args[0] == "-m", f"no runner for {text!r}"
+    module, rest = args[1], args[2:]
+    if module == "src.train":
+        weights = [PRETRAINED.match(a).group(1) for a in rest if PRETRAINED.match(a)]
+        argv += train_additions(rest, ws)
+        proc = run_in(ws, argv)
+        if weights:
+            return check_pretrained_download(argv, proc, rest, weights[0])
+        return check_train(argv, proc, rest, ws)
+    checks = {
+        "src.eval": check_eval,
+        "src.predict": check_predict,
+        "image2sphere.data.verify": check_verify,
+        "image2sphere.data.fixtures": check_fixtures,
+        "image2sphere.data.render": check_render,
+    }
+    assert module in checks, f"no runner for python -m {module} (shown at {command.where})"
+    if module in ("src.eval", "src.predict"):
+        argv += [f"paths.log_dir={ws.root / 'logs'}"]
+    proc = run_in(ws, argv)
+    checks[module](argv, proc, rest if module.startswith("src.") else args, ws)
+
+
+# ------------------------------------------------------------------------------------------ python blocks
+CLAIM = re.compile(r"^(?P<code>.*?\S)\s+#\s*(?P<claim>\[[\d,\s]+\]|[A-Z]\w+)")
+
+
+def _is_claim(claim: str) -> bool:
+    """A shape, or the name of one of the package's public classes."""
+    import image2sphere.inference
+    import image2sphere.nn
+    import image2sphere.so3
+
+    modules = (image2sphere.so3, image2sphere.nn, image2sphere.inference)
+    return claim.startswith("[") or any(isinstance(getattr(m, claim, None), type) for m in modules)
+
+
+ASSIGN = re.compile(r"^(?P<indent>\s*)(?P<name>[A-Za-z_]\w*)\s*=(?!=)")
+
+
+def with_claim_checks(code: str) -> tuple[str, int]:
+    """``code`` with the shape (``# [2, 455] ...``) or type (``# SO3Distribution ...``) its comments claim
+    asserted after each such line; and the number of claims."""
+    lines, claims = [], 0
+    for number, line in enumerate(code.splitlines(), 1):
+        match = CLAIM.match(line)
+        if not match or not _is_claim(match.group("claim")):
+            lines.append(line)
+            continue
+        claims += 1
+        stripped, claim = match.group("code"), match.group("claim")
+        assign = ASSIGN.match(stripped)
+        if assign:
+            lines += [stripped, f"{assign.group('indent')}_claim({assign.group('name')}, {claim!r}, {number})"]
+        else:
+            indent = stripped[: len(stripped) - len(stripped.lstrip())]
+            lines.append(f"{indent}_claim({stripped.strip()}, {claim!r}, {number})")
+    header = (
+        "_checked = []\n"
+        "def _claim(value, claim, line):\n"
+        "    if claim.startswith('['):\n"
+        "        shape = [int(x) for x in claim.strip('[]').split(',')]\n"
+        "        assert list(value.shape) == shape, f'line {line}: shape {list(value.shape)}, documented {shape}'\n"
+        "    else:\n"
+        "        assert type(value).__name__ == claim, f'line {line}: a {type(value).__name__}, documented {claim}'\n"
+        "    _checked.append(line)\n"
+    )
+    footer = "\nprint('CLAIMS CHECKED', len(_checked))\n"
+    return header + "\n".join(lines) + footer, claims
+
+
+def test_claim_checks_can_fail():
+    code, claims = with_claim_checks("import torch\nx = torch.zeros(2, 3)  # [2, 4] wrong\n")
+    assert claims == 1
+    with pytest.raises(AssertionError, match="documented"):
+        exec(compile(code, "<claims>", "exec"), {})
+
+
+@pytest.mark.parametrize(
+    "block", [pytest.param(b, id=where) for b, where in readme_python_blocks()]
+)  # fmt: skip
+def test_readme_python_block(block, fixtures_root, checkpoint_run, tmp_path):
+    ws = make_workspace(tmp_path / "repo", fixtures_root, checkpoint_run)
+    block = block.replace("logs/train/runs/<run>", f"logs/train/runs/{ws.run.name}")
+    for node in ast.walk(ast.parse(block)):
+        if isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value.endswith(IMAGE_SUFFIXES):
+            write_image(ws.root / node.value)
+    assert "<" not in re.sub(r"#.*", "", block), f"a placeholder this test does not know:\n{block}"
+    code, claims = with_claim_checks(block)
+    argv = [sys.executable, "-c", code]
+    proc = run_in(ws, argv, timeout=600)
+    assert proc.returncode == 0, describe(["python", "-c", "<README block>"], proc) + "\n" + code
+    assert f"CLAIMS CHECKED {claims}" in proc.stdout, proc.stdout

@@ -85,9 +85,9 @@ class I2S(_PoseNetwork):
         so3_kernel_max_deg: support of the SO(3) filter around the identity (22.5 deg).
         activation_resolution: resolution of e3nn's SO(3) grid for the ReLU.
         num_classes: if > 0, the class one-hot is appended to the feature map as constant channels.
-        init: initialisation of the S2 and SO(3) convolutions, ``"fan_in"`` (parameters at the scale
-            that keeps the signal's size, as ``nn.Linear``) or ``"unit"`` (N(0, 1) parameters scaled
-            in the forward pass); see :class:`~image2sphere.nn.S2Conv`.
+        init: initialisation of the S2 and SO(3) convolutions, ``"unit"`` (N(0, 1) parameters scaled
+            in the forward pass) or ``"fan_in"`` (parameters at the scale that keeps the signal's
+            size, as ``nn.Linear``); see :mod:`image2sphere.nn.s2_conv`.
         projector_normalization: ``"mean"`` (coefficients independent of the number of projection
             points) or ``"sqrt"``; see :class:`~image2sphere.nn.SpatialS2Projector`.
         so3_kernel: support of the SO(3) filter, ``"local"`` (rotations within ``so3_kernel_max_deg``
@@ -115,7 +115,7 @@ class I2S(_PoseNetwork):
         so3_kernel_max_deg: float = 22.5,
         activation_resolution: int = 8,
         num_classes: int = 0,
-        init: str = "fan_in",
+        init: str = "unit",
         projector_normalization: str = "mean",
         so3_kernel: str = "local",
     ):

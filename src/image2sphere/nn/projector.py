@@ -146,11 +146,12 @@ class HarmonicS2Projector(nn.Module):
         super().__init__()
         self.lmax = check_lmax(lmax)
         self.sphere_channels = sphere_channels
-        self.mlp = nn.Sequential(
-            nn.Linear(in_channels, hidden_channels),
-            nn.ReLU(),
-            nn.Linear(hidden_channels, sphere_channels * n_s2_coeffs(lmax)),
-        )
+        last = nn.Linear(hidden_channels, sphere_channels * n_s2_coeffs(lmax))
+        # each channel's S2 signal (mean square = sum of its (lmax+1)^2 coefficients squared) starts at
+        # about the size the spatial projector gives, not (lmax+1)^2 times larger
+        nn.init.normal_(last.weight, std=1 / math.sqrt(hidden_channels * n_s2_coeffs(lmax)))
+        nn.init.zeros_(last.bias)
+        self.mlp = nn.Sequential(nn.Linear(in_channels, hidden_channels), nn.ReLU(), last)
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         if features.ndim != 4:

@@ -13,13 +13,14 @@ convolution ``(x * psi)(R) = <x, psi(R^-1 .)>`` with each band of the filter sca
 (a reparametrisation of the learned filter). Rotating the input by ``Q`` (``x^l -> D^l(Q) x^l``)
 left-translates the output: ``out'(R) = out(Q^-1 R)``.
 
-Initialisation (``init``): ``"fan_in"`` (default) draws the filter at the scale that keeps the
-signal's mean square at init, ``psi ~ N(0, g^2 / f_in)`` with ``g^2 = sum_l (2l+1) / sum_l (2l+1)^2``
-(for an input whose power is spread over the bands like white noise, the output signal
-``out(R)`` then has the input's mean square), and ``scale = 1``: the parameters are the filter
-itself, as in ``nn.Linear``. ``"unit"`` draws ``psi ~ N(0, 1)`` and uses ``scale = 1 / sqrt(f_in)``;
-its output is ``1 / g`` (about 3 at lmax 6) times larger and, with Adam (steps of a fixed size in
-the parameters), its filter moves ``sqrt(f_in) / g`` times more slowly relative to its size.
+Initialisation (``init``): ``"unit"`` (default) draws ``psi ~ N(0, 1)`` and uses
+``scale = 1 / sqrt(f_in)``. ``"fan_in"`` draws the filter at the scale that keeps the signal's mean
+square, ``psi ~ N(0, g^2 / f_in)`` with ``g^2 = sum_l (2l+1) / sum_l (2l+1)^2`` (for an input whose
+power is spread over the bands like white noise), and ``scale = 1``: the parameters are the filter
+itself, as in ``nn.Linear``. Its output is ``g`` (about 1/3 at lmax 6) times the other's, and with
+Adam (steps of a fixed size in the parameters) its filter moves ``sqrt(f_in) / g`` times faster
+relative to its size. Both start close to uniform's loss once the projection is a mean over its
+points; on the built-in data ``"fan_in"`` never learned the cube (docs/training_fidelity.md).
 """
 
 from __future__ import annotations
@@ -57,7 +58,7 @@ class S2Conv(nn.Module):
         filter: str = "harmonic",
         kernel_level: int = 2,
         kernel_max_beta: float = math.pi,
-        init: str = "fan_in",
+        init: str = "unit",
     ):
         super().__init__()
         self.lmax = check_lmax(lmax)

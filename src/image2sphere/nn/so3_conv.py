@@ -12,10 +12,10 @@ which in the Fourier domain is ``out^l = F^l @ Psi^l^T / sqrt(2l+1)`` with
 ``Psi = sum_k w_k flat_wigner(g_k)``. Rotating the input (``f -> f(Q^-1 .)``) left-translates
 the output the same way: the layer is SO(3)-equivariant.
 
-Initialisation (``init``): ``"fan_in"`` (default) draws ``w ~ N(0, 2 / (f_in * K))`` and uses
-``scale = 1``, like ``nn.Linear`` after a ReLU (Kaiming's gain 2: the layer follows the SO(3)
-ReLU, which halves a zero-mean signal's mean square), so the output has the mean square of the
-signal before that ReLU. ``"unit"`` draws ``w ~ N(0, 1)`` with ``scale = 1 / sqrt(f_in * K)``.
+Initialisation (``init``): ``"unit"`` (default) draws ``w ~ N(0, 1)`` with
+``scale = 1 / sqrt(f_in * K)``, which keeps the mean square of its input. ``"fan_in"`` draws
+``w ~ N(0, 2 / (f_in * K))`` and uses ``scale = 1``, like ``nn.Linear`` after a ReLU (Kaiming's
+gain 2: the layer follows the SO(3) ReLU, which halves a zero-mean signal's mean square).
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ class SO3Conv(nn.Module):
         axis_level: int = 1,
         n_angles: int = 3,
         kernel: torch.Tensor | None = None,
-        init: str = "fan_in",
+        init: str = "unit",
     ):
         super().__init__()
         self.lmax = check_lmax(lmax)

@@ -291,3 +291,19 @@ def test_slurm_requeue_signal_writes_hpc_checkpoint_and_requeued_job_resumes_fro
 
 def test_tiny_overrides_are_the_ones_the_entry_test_uses():
     assert "dataset.image_size=32" in TINY and "lmax=2" in TINY  # the trained fixture's lmax 3 differs from these
+
+
+def test_checkpoint_from_before_projector_normalization_keeps_its_rule(tmp_path, trained):
+    """Checkpoints written before model.net.projector_normalization existed were trained with sum / sqrt(n)."""
+    from image2sphere.training.checkpoint import build_module, load_checkpoint
+
+    ckpt = torch.load(trained / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    assert ckpt["run_config"]["model"]["net"]["projector_normalization"] == "mean"  # today's default
+    del ckpt["run_config"]["model"]["net"]["projector_normalization"]
+    old = tmp_path / "old.ckpt"
+    torch.save(ckpt, old)
+    loaded = load_checkpoint(old)
+    assert loaded["run_config"]["model"]["net"]["projector_normalization"] == "sqrt"
+    assert build_module(loaded, old).net.projector.normalization == "sqrt"
+    current = load_checkpoint(trained / "checkpoints" / "last.ckpt")
+    assert build_module(current, "current").net.projector.normalization == "mean"

@@ -8,6 +8,7 @@ code. Every failure names the file and says what did not match.
 
 from __future__ import annotations
 
+import logging
 import pickle
 import re
 import zipfile
@@ -18,6 +19,8 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 __all__ = ["CheckpointError", "build_module", "load_checkpoint"]
+
+log = logging.getLogger(__name__)
 
 
 class CheckpointError(ValueError):
@@ -59,7 +62,23 @@ def load_checkpoint(path: str | Path) -> dict:
             f"{path} has no 'run_config' with a 'model' section: it was not written by python -m src.train of "
             "this project, so the network it holds cannot be rebuilt"
         )
+    _upgrade_run_config(ckpt["run_config"], path)
     return ckpt
+
+
+def _upgrade_run_config(run_config: dict, path: Path) -> None:
+    """Spell out, in a checkpoint's stored config, the settings it was trained with that later
+    versions changed the defaults of, so that rebuilding or resuming it keeps its behaviour.
+
+    * ``model.net.projector_normalization``: absent before it existed, when the projector divided
+      by ``sqrt(n)``; the default is now ``mean``.
+    """
+    net = (run_config.get("model") or {}).get("net")
+    if not isinstance(net, dict) or not str(net.get("_target_", "")).endswith(".I2S"):
+        return
+    if net.get("projector", "spatial") == "spatial" and "projector_normalization" not in net:
+        net["projector_normalization"] = "sqrt"
+        log.info("%s predates model.net.projector_normalization: using 'sqrt', the rule it was trained with", path)
 
 
 def build_module(ckpt: dict, path: str | Path, **overrides):

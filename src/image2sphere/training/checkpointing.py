@@ -150,7 +150,7 @@ class EpochCheckpoint(ModelCheckpoint):
         self._stop_if_asked(trainer)
 
     def _stop_if_asked(self, trainer: pl.Trainer) -> None:
-        signum = self._stop_signal if self._stop_signal is not None else None
+        signum = self._stop_signal
         if signum is None and trainer.received_sigterm:
             signum = signal.SIGTERM
         if signum is None:

@@ -22,7 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from image2sphere.training.checkpoint import CheckpointError, build_module, load_checkpoint
 from image2sphere.training.pipeline import TABLE_COLUMNS, _finish_loggers, _instantiate_list, format_metrics_table
-from image2sphere.training.run_config import check_eval_config
+from image2sphere.training.run_config import check_eval_config, command_line, override_key
 
 __all__ = ["evaluate", "format_metrics_markdown"]
 
@@ -66,12 +66,8 @@ def _dataset_at_model_size(dataset: DictConfig, ckpt: dict, ckpt_path: str) -> D
     size = ((ckpt["run_config"].get("model") or {}).get("net") or {}).get("image_size")
     if size is None or dataset.get("image_size") in (None, size):
         return dataset
-    from hydra.core.hydra_config import HydraConfig
-
-    explicit = HydraConfig.initialized() and any(
-        o.lstrip("+~").split("=")[0] == "dataset.image_size" for o in HydraConfig.get().overrides.task
-    )
-    if explicit:
+    command = command_line()
+    if command is not None and "dataset.image_size" in map(override_key, command[1]):
         raise ValueError(
             f"dataset.image_size={dataset.image_size}, but the network in {ckpt_path} "
             f"takes {size} px images: leave dataset.image_size out (it follows the checkpoint) or set it to {size}"

@@ -140,7 +140,17 @@ def explicit_override_keys(config_name: str, overrides: list[str]) -> set[str]:
     return {k for k in set(with_ov) | set(without) if with_ov.get(k, "<absent>") != without.get(k, "<absent>")}
 
 
-def _command_line() -> tuple[str, list[str]] | None:
+def override_key(override: str) -> str:
+    """The key or group a command-line override sets: ``+a.b=1`` -> ``a.b``, ``dataset=symsol1`` -> ``dataset``."""
+    return override.lstrip("+~").split("=")[0]
+
+
+def _under(key: str, prefix: str) -> bool:
+    """``key`` is ``prefix`` or lies below it (``a.b`` is under ``a``; ``ab`` is not)."""
+    return key == prefix or key.startswith(prefix + ".")
+
+
+def command_line() -> tuple[str, list[str]] | None:
     """The config name and the task overrides of the running Hydra job (``None`` outside Hydra)."""
     from hydra.core.hydra_config import HydraConfig
 
@@ -152,7 +162,7 @@ def _command_line() -> tuple[str, list[str]] | None:
 
 def _merge(stored: Any, current: Any, prefix: str, explicit: set[str]) -> Any:
     """``stored`` with the leaves under ``prefix`` that the command line changed taken from ``current``."""
-    if not any(k == prefix or k.startswith(prefix + ".") for k in explicit):
+    if not any(_under(k, prefix) for k in explicit):
         return copy.deepcopy(stored)
     if prefix in explicit or not (isinstance(stored, dict) and isinstance(current, dict)):
         return copy.deepcopy(current)
@@ -162,7 +172,7 @@ def _merge(stored: Any, current: Any, prefix: str, explicit: set[str]) -> Any:
     for key in list(stored) + [k for k in current if k not in stored]:
         path = f"{prefix}.{key}"
         if key not in current:
-            if not any(k == path or k.startswith(path + ".") for k in explicit):  # else the command line removed it
+            if not any(_under(k, path) for k in explicit):  # else the command line removed it
                 out[key] = copy.deepcopy(stored[key])
         elif key not in stored:
             out[key] = copy.deepcopy(current[key])
@@ -175,10 +185,10 @@ def resume_config(cfg: DictConfig, ckpt: dict, ckpt_path: str) -> DictConfig:
     """The config a run resumed from ``ckpt`` runs with (see the module docstring); logs what came from where."""
     stored = ckpt["run_config"]
     current = OmegaConf.to_container(cfg, resolve=True)
-    command = _command_line()
+    command = command_line()
     explicit: set[str] = set()
     if command is not None:
-        overrides = [o for o in command[1] if o.lstrip("+~").split("=")[0] != "ckpt_path"]
+        overrides = [o for o in command[1] if override_key(o) != "ckpt_path"]
         if overrides:
             explicit = explicit_override_keys(command[0], overrides)
     result = copy.deepcopy(current)
@@ -199,7 +209,7 @@ def resume_config(cfg: DictConfig, ckpt: dict, ckpt_path: str) -> DictConfig:
     from_command = sorted(
         k
         for k in explicit
-        if any(k == c or k.startswith(c + ".") for c in checkpoint_keys)
+        if any(_under(k, c) for c in checkpoint_keys)
         and stored_leaves.get(k, "<absent>") != result_leaves.get(k, "<absent>")
     )
     log.info(

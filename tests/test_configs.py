@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import inspect
+import re
 from pathlib import Path
 
 import lightning.pytorch as pl
@@ -11,7 +12,7 @@ from hydra import compose, initialize
 from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
-from omegaconf import DictConfig, open_dict
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from image2sphere.training import PoseEstimationModule, register_resolvers
 
@@ -70,6 +71,118 @@ def test_defaults_compose_to_the_embedded_run(tmp_path):
     # a command-line choice wins over the dataset's
     assert compose_cfg(tmp_path, ["optimizer=sgd"]).model.optimizer._target_ == "torch.optim.SGD"
     assert "multiruns" in cfg.hydra.sweep.dir and "runs" in cfg.hydra.run.dir
+
+
+# what `dataset=X` alone resolves to: (protocol, encoder depth, optimizer, lr, epochs, step_size, gamma,
+# image size, batch size). The paper: SGD, 40 epochs, x0.1 every 15; ResNet-101 for PASCAL3D+ only.
+RESOLVES_TO = {
+    "symsol_rendered": ("symsol_rendered", 18, "Adam", 0.001, 5, 3, 0.1, 96, 32),
+    "symsol1": ("symsol1", 50, "SGD", 0.001, 40, 15, 0.1, 224, 64),
+    "symsol2": ("symsol2", 50, "SGD", 0.001, 40, 15, 0.1, 224, 64),
+    "modelnet10": ("modelnet10", 50, "SGD", 0.001, 40, 15, 0.1, 224, 64),
+    "modelnet10_limited": ("modelnet10_limited", 50, "SGD", 0.001, 40, 15, 0.1, 224, 64),
+    "pascal3d": ("pascal3d", 101, "SGD", 0.001, 40, 15, 0.1, 224, 64),
+}
+PROTOCOL_KEYS = ("encoder", "model.optimizer", "trainer.max_epochs", "model.scheduler")
+
+
+def resolved(cfg: DictConfig) -> tuple:
+    opt, sched = cfg.model.optimizer, cfg.model.scheduler
+    return (
+        cfg.hydra.runtime.choices.protocol,
+        cfg.model.net.encoder.depth,
+        opt._target_.rsplit(".", 1)[-1],
+        opt.lr,
+        cfg.trainer.max_epochs,
+        sched.step_size,
+        sched.gamma,
+        cfg.dataset.image_size,
+        cfg.dataset.batch_size,
+    )
+
+
+def test_every_dataset_has_its_pinned_resolution():
+    assert set(options("dataset")) == set(RESOLVES_TO)
+    assert set(options("protocol")) == set(RESOLVES_TO) | {"paper"}
+
+
+@pytest.mark.parametrize("dataset", sorted(RESOLVES_TO))
+def test_dataset_alone_resolves_to_its_protocol(tmp_path, dataset):
+    """``dataset=X`` alone: the data plus the protocol of the same name, and nothing else changes."""
+    cfg = compose_cfg(tmp_path, [f"dataset={dataset}"])
+    assert resolved(cfg) == RESOLVES_TO[dataset]
+    if cfg.model.optimizer._target_ == "torch.optim.SGD":  # the paper's SGD
+        assert (cfg.model.optimizer.momentum, cfg.model.optimizer.nesterov) == (0.9, True)
+    # the protocol file sets its four settings only: with any other protocol, every other key is the same
+    a = OmegaConf.to_container(cfg, resolve=False)
+    b = OmegaConf.to_container(compose_cfg(tmp_path, [f"dataset={dataset}", "protocol=paper"]), resolve=False)
+    for key in ("encoder", "trainer", "model", "hydra"):
+        a.pop(key), b.pop(key)
+    assert a == b
+    # ... and the dataset group's file sets the dataset only: each dataset differs from the built-in
+    # default run in `dataset` and the protocol's four settings, nowhere else
+    base = OmegaConf.to_container(compose_cfg(tmp_path), resolve=False)
+    mine = OmegaConf.to_container(cfg, resolve=False)
+    for c in (base, mine):
+        c.pop("dataset"), c.pop("encoder"), c.pop("hydra")
+        c["trainer"].pop("max_epochs"), c["model"].pop("optimizer"), c["model"].pop("scheduler")
+    assert mine == base
+
+
+@pytest.mark.parametrize(
+    "overrides, expected",
+    [
+        (["dataset=pascal3d", "encoder=resnet50"], {"depth": 50, "opt": "torch.optim.SGD", "epochs": 40}),
+        (["dataset=symsol1", "optimizer=adam", "trainer.max_epochs=7"], {"depth": 50, "opt": "torch.optim.Adam", "epochs": 7}),
+        (["protocol=paper"], {"depth": 50, "opt": "torch.optim.SGD", "epochs": 40}),
+        (["dataset=pascal3d", "protocol=symsol_rendered"], {"depth": 18, "opt": "torch.optim.Adam", "epochs": 5}),
+        (["experiment=pascal3d", "encoder=resnet18"], {"depth": 18, "opt": "torch.optim.SGD", "epochs": 40}),
+    ],
+)
+def test_command_line_wins_over_the_protocol(tmp_path, overrides, expected):
+    cfg = compose_cfg(tmp_path, overrides)
+    got = {"depth": cfg.model.net.encoder.depth, "opt": cfg.model.optimizer._target_, "epochs": cfg.trainer.max_epochs}
+    assert got == expected
+    if expected["opt"] == "torch.optim.Adam":  # one optimizer file, not SGD's keys merged into Adam's
+        assert "momentum" not in cfg.model.optimizer and "nesterov" not in cfg.model.optimizer
+
+
+def test_start_up_log_says_where_each_protocol_setting_came_from(tmp_path):
+    from image2sphere.training.run_config import describe_run, protocol_settings
+
+    overrides = ["dataset=pascal3d", "encoder=resnet34", "debug=limit"]
+    cfg = compose_cfg(tmp_path, overrides)
+    choices = dict(cfg.hydra.runtime.choices)
+    alone = protocol_settings(compose_cfg(tmp_path, ["dataset=pascal3d", "protocol=pascal3d"]))
+    lines = describe_run(cfg, choices, overrides, alone).splitlines()
+    assert lines[0].startswith("This run trains (dataset=pascal3d brings protocol=pascal3d")
+    by_name = {line.split()[0]: line for line in lines[1:]}
+    assert by_name["encoder"].endswith("resnet34: ResNet-34, random initialisation  [command line]")
+    assert by_name["optimizer"].endswith("(lr=0.001, momentum=0.9, nesterov=True, weight_decay=0.0)  [protocol=pascal3d]")
+    assert by_name["epochs"].endswith("2  [debug=limit]")  # the debug preset changed the protocol's 40
+    assert by_name["scheduler"].endswith("StepLR(step_size=15, gamma=0.1), stepped every epoch  [protocol=pascal3d]")
+    assert "Pascal3DDataModule" in by_name["data"] and "224 px, batch 64" in by_name["data"]
+    # a resumed run: values only, no sources claimed
+    resumed = describe_run(cfg, None, ["ckpt_path=x.ckpt"], None)
+    assert "[" not in resumed and "ResNet-34" in resumed
+
+
+def test_docs_resolution_table_is_what_the_configs_compose(tmp_path):
+    """docs/configuration.md's table of `dataset=X` alone, row by row, against the composed configs."""
+    text = (CONF.parent / "docs" / "configuration.md").read_text()
+    rows = re.findall(r"^\| `python -m src\.train( dataset=(\w+))?` \|(.*)\|$", text, re.M)
+    assert sorted(r[1] or "symsol_rendered" for r in rows) == sorted(RESOLVES_TO)
+    for _, dataset, cells in rows:
+        dataset = dataset or "symsol_rendered"
+        protocol, encoder, optimizer, epochs, schedule, size, batch = (c.strip() for c in cells.split("|"))
+        cfg = compose_cfg(tmp_path, [f"dataset={dataset}"] if dataset != "symsol_rendered" else [])
+        opt, sched = cfg.model.optimizer, cfg.model.scheduler
+        assert protocol == f"`{cfg.hydra.runtime.choices.protocol}`", dataset
+        assert encoder == f"ResNet-{cfg.model.net.encoder.depth}", dataset
+        assert optimizer == f"{opt._target_.rsplit('.', 1)[-1]}, lr {opt.lr}", dataset
+        assert epochs == str(cfg.trainer.max_epochs), dataset
+        assert schedule == f"x{sched.gamma} every {sched.step_size} epochs", dataset
+        assert (size, batch) == (f"{cfg.dataset.image_size} px", str(cfg.dataset.batch_size)), dataset
 
 
 @pytest.mark.parametrize("model", options("model"))

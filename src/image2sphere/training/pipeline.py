@@ -23,7 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from image2sphere.training.checkpoint import load_checkpoint
 from image2sphere.training.checkpointing import TrainingInterrupted
 from image2sphere.training.module import NonFiniteLossError
-from image2sphere.training.run_config import check_train_config, resume_config
+from image2sphere.training.run_config import check_train_config, describe_run, protocol_settings, resume_config
 
 __all__ = ["format_metrics_table", "register_resolvers", "train"]
 
@@ -123,6 +123,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
             )
         cfg = resume_config(cfg, load_checkpoint(ckpt_path), str(ckpt_path))
     check_train_config(cfg)
+    log.info(describe_run(cfg, *_hydra_choices(resumed=ckpt_path is not None)))
     output_dir = Path(cfg.paths.output_dir)
     requeued = is_slurm_requeue(output_dir)  # Lightning resumes it from its hpc_ckpt_*.ckpt
     for existing in (output_dir / "checkpoints", output_dir / "metrics.json"):
@@ -195,6 +196,24 @@ def train(cfg: DictConfig) -> dict[str, float]:
             print(f"Run directory: {output_dir}\n")
     _finish_loggers(loggers)
     return {**metrics, **timings}
+
+
+def _hydra_choices(resumed: bool) -> tuple[dict[str, str] | None, list[str], dict[str, str] | None]:
+    """The running Hydra job's group choices, its command-line overrides and the settings of its
+    protocol file alone (composed with nothing but ``dataset`` and ``protocol``), for
+    :func:`~image2sphere.training.run_config.describe_run`. Outside Hydra: nothing; in a resumed run,
+    whose values come from its checkpoint: the overrides only."""
+    from hydra import compose
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return None, [], None
+    hc = HydraConfig.get()
+    if resumed or not hc.runtime.choices.get("protocol"):
+        return None, list(hc.overrides.task), None
+    choices = {k: v for k, v in hc.runtime.choices.items() if v is not None}
+    alone = compose(hc.job.config_name, [f"dataset={choices['dataset']}", f"protocol={choices['protocol']}"])
+    return choices, list(hc.overrides.task), protocol_settings(alone)
 
 
 def _exit_interrupted(e: TrainingInterrupted) -> None:

@@ -27,7 +27,7 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-__all__ = ["check_eval_config", "check_train_config", "resume_config"]
+__all__ = ["check_eval_config", "check_train_config", "describe_run", "resume_config"]
 
 log = logging.getLogger(__name__)
 
@@ -221,3 +221,85 @@ def resume_config(cfg: DictConfig, ckpt: dict, ckpt_path: str) -> DictConfig:
         f"; from the command line: {', '.join(from_command)}" if from_command else "",
     )
     return OmegaConf.create(result)
+
+
+# ---------------------------------------------------------------------------------------------- start-up
+# what a protocol file (conf/protocol/) sets, with the command-line keys that replace it
+PROTOCOL_KEYS = {
+    "encoder": ("encoder",),
+    "optimizer": ("optimizer", "model.optimizer"),
+    "epochs": ("trainer.max_epochs",),
+    "scheduler": ("model.scheduler",),
+}
+
+
+def _name(node: Any, default: str = "?") -> str:
+    """The class name of a config node's ``_target_`` (``torch.optim.SGD`` -> ``SGD``)."""
+    return str(node.get("_target_", default)).rsplit(".", 1)[-1] if node else default
+
+
+def _kwargs(node: Any) -> str:
+    """``a=1, b=2`` of a config mapping, without Hydra's own keys."""
+    return ", ".join(f"{k}={v}" for k, v in (node or {}).items() if k not in ("_target_", "_partial_"))
+
+
+def protocol_settings(cfg: DictConfig) -> dict[str, str]:
+    """The four settings a protocol chooses (:data:`PROTOCOL_KEYS`), as they read in the start-up log."""
+    model, enc = cfg.get("model") or {}, cfg.get("encoder") or {}
+    weights = enc.get("weights")
+    return {
+        "encoder": f"ResNet-{enc.get('depth')}, {'weights ' + str(weights) if weights else 'random initialisation'}",
+        "optimizer": f"{_name(model.get('optimizer'))}({_kwargs(model.get('optimizer'))})",
+        "epochs": str(OmegaConf.select(cfg, "trainer.max_epochs")),
+        "scheduler": f"{_name(model.get('scheduler'), 'none')}({_kwargs(model.get('scheduler'))}), "
+        f"stepped every {model.get('scheduler_interval', 'epoch')}",
+    }
+
+
+def describe_run(
+    cfg: DictConfig,
+    choices: dict[str, str] | None = None,
+    overrides: list[str] = (),
+    protocol: dict[str, str] | None = None,
+) -> str:
+    """Lines that say what a training run trains: data, network, encoder, optimiser and schedule.
+
+    ``choices`` are Hydra's group choices of the run (``hydra.runtime.choices``; ``None`` for a
+    resumed run, whose values come from its checkpoint), ``overrides`` its command-line overrides
+    and ``protocol`` the :func:`protocol_settings` of its protocol file alone: each of the four
+    settings is marked as the protocol's, the command line's, or changed by another config file.
+    """
+    choices = {k: v for k, v in (choices or {}).items() if v is not None}
+    keys = [override_key(o) for o in overrides]
+    others = ", ".join(f"{g}={choices[g]}" for g in ("experiment", "debug", "hparams_search") if g in choices)
+    settings = protocol_settings(cfg)
+
+    def source(what: str) -> str:
+        if any(_under(k, p) for k in keys for p in PROTOCOL_KEYS[what]):
+            return "  [command line]"
+        if protocol is None or "protocol" not in choices:
+            return ""
+        if protocol[what] == settings[what]:
+            return f"  [protocol={choices['protocol']}]"
+        return f"  [{others or 'another config file'}]"
+
+    def choice(group: str) -> str:
+        return f"{choices[group]}: " if group in choices else ""
+
+    data, net = cfg.get("dataset") or {}, OmegaConf.select(cfg, "model.net") or {}
+    lines = [
+        f"  data       {choice('dataset')}{_name(data)} from {data.get('root') or data.get('render_dir')}, "
+        f"{data.get('image_size')} px, batch {data.get('batch_size')}",
+        f"  model      {choice('model')}{_name(net)}, lmax {cfg.get('lmax')}, "
+        f"grid levels {cfg.get('train_grid_level')} (training) and {cfg.get('eval_grid_level')} (test)",
+    ] + [f"  {what:<10} {choice(what)}{settings[what]}{source(what)}" for what in PROTOCOL_KEYS]
+    if "protocol" in choices:
+        head = (
+            f"This run trains (dataset={choices.get('dataset')} brings protocol={choices['protocol']}, "
+            f"conf/protocol/{choices['protocol']}.yaml; docs/configuration.md):"
+        )
+    else:
+        head = "This run trains (values from the checkpoint where it resumes one):"
+    if others:
+        lines.append(f"  also       {others}")
+    return "\n".join([head, *lines])

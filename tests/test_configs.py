@@ -133,7 +133,10 @@ def test_dataset_alone_resolves_to_its_protocol(tmp_path, dataset):
     "overrides, expected",
     [
         (["dataset=pascal3d", "encoder=resnet50"], {"depth": 50, "opt": "torch.optim.SGD", "epochs": 40}),
-        (["dataset=symsol1", "optimizer=adam", "trainer.max_epochs=7"], {"depth": 50, "opt": "torch.optim.Adam", "epochs": 7}),
+        (
+            ["dataset=symsol1", "optimizer=adam", "trainer.max_epochs=7"],
+            {"depth": 50, "opt": "torch.optim.Adam", "epochs": 7},
+        ),
         (["protocol=paper"], {"depth": 50, "opt": "torch.optim.SGD", "epochs": 40}),
         (["dataset=pascal3d", "protocol=symsol_rendered"], {"depth": 18, "opt": "torch.optim.Adam", "epochs": 5}),
         (["experiment=pascal3d", "encoder=resnet18"], {"depth": 18, "opt": "torch.optim.SGD", "epochs": 40}),
@@ -158,7 +161,8 @@ def test_start_up_log_says_where_each_protocol_setting_came_from(tmp_path):
     assert lines[0].startswith("This run trains (dataset=pascal3d brings protocol=pascal3d")
     by_name = {line.split()[0]: line for line in lines[1:]}
     assert by_name["encoder"].endswith("resnet34: ResNet-34, random initialisation  [command line]")
-    assert by_name["optimizer"].endswith("(lr=0.001, momentum=0.9, nesterov=True, weight_decay=0.0)  [protocol=pascal3d]")
+    sgd = "sgd: SGD(lr=0.001, momentum=0.9, nesterov=True, weight_decay=0.0)"
+    assert by_name["optimizer"].endswith(f"{sgd}  [protocol=pascal3d]")
     assert by_name["epochs"].endswith("2  [debug=limit]")  # the debug preset changed the protocol's 40
     assert by_name["scheduler"].endswith("StepLR(step_size=15, gamma=0.1), stepped every epoch  [protocol=pascal3d]")
     assert "Pascal3DDataModule" in by_name["data"] and "224 px, batch 64" in by_name["data"]

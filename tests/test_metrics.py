@@ -1,4 +1,4 @@
-"""Pose metrics (SPEC section 3) against analytic values, dense references and scipy."""
+"""Pose metrics (docs/evaluation.md) against analytic values, dense references and scipy."""
 
 from __future__ import annotations
 

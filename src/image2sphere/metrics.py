@@ -1,4 +1,4 @@
-"""Pose metrics of SPEC section 3, per image and summarised per class.
+"""Pose metrics (docs/evaluation.md), per image and summarised per class.
 
 Conventions
 -----------

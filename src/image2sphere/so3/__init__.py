@@ -1,6 +1,6 @@
 """Rotation math, HEALPix grids on S2 and SO(3), Wigner layouts and SO(3) distributions.
 
-Conventions are fixed project-wide (see ``SPEC.md`` section 1 and each module's docstring):
+Conventions are fixed project-wide (see ``docs/conventions.md`` and each module's docstring):
 column-vector rotation matrices, e3nn YXY Euler angles, the flat Wigner layout for SO(3) signals,
 and a pixel-major flat order (``p * n_gamma + k``) for the SO(3) HEALPix grid.
 """

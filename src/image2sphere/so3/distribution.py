@@ -1,7 +1,7 @@
 """Probability distributions over SO(3) given by a Fourier signal (flat Wigner layout).
 
-Conventions (SPEC section 1)
-----------------------------
+Conventions (docs/conventions.md#densities)
+-------------------------------------------
 * The model's signal ``f`` (logits) is evaluated on the HEALPix SO(3) grid of a level and put
   through a softmax: ``p_i = softmax(f(R_i))`` over the ``N`` grid points.
 * The density at ``R`` w.r.t. the Haar measure normalised to total volume ``pi^2`` (IPDF's

@@ -1,7 +1,7 @@
 """HEALPix grids on S2 and SO(3), and near-identity kernel grids.
 
-Conventions (SPEC section 1)
-----------------------------
+Conventions (docs/conventions.md#so3-healpix-grid)
+--------------------------------------------------
 * S2 points are given as YXY angles ``(alpha, beta)``: the point is ``R(alpha, beta, 0) @ e_y =
   (sin b sin a, cos b, sin b cos a)`` (e3nn's ``angles_to_xyz``). HEALPix pixel ``p`` of
   ``nside = 2**level`` in RING order has ``beta, alpha = healpy.pix2ang(nside, p)``; the map

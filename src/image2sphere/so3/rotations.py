@@ -1,7 +1,7 @@
 """Rotation helpers.
 
-Conventions (project-wide, see SPEC section 1)
------------------------------------------------
+Conventions (project-wide, see docs/conventions.md#rotation-matrices)
+---------------------------------------------------------------------
 * Rotation matrices have shape ``(..., 3, 3)``, act on column vectors: ``x_camera = R @ x_object``.
 * Euler angles are e3nn's Y-X-Y convention: ``R = Ry(alpha) @ Rx(beta) @ Ry(gamma)`` with
   ``alpha, gamma`` in ``[0, 2 pi)`` (or ``(-pi, pi]``) and ``beta`` in ``[0, pi]``.

@@ -1,7 +1,7 @@
 """Wigner D-matrices in the flat layout used for SO(3) signals.
 
-Conventions (SPEC section 1)
-----------------------------
+Conventions (docs/conventions.md#flat-wigner-layout)
+----------------------------------------------------
 * ``D^l = e3nn.o3.wigner_D(l, alpha, beta, gamma)`` with YXY angles of the rotation, real basis.
 * Flat layout: for ``l = 0..lmax`` the ``(2l+1)^2`` entries of a matrix ``c^l`` in row-major
   order ``(m, n)``, concatenated. A signal with coefficients ``c`` is

@@ -1,4 +1,4 @@
-"""The evaluation run behind ``python -m src.eval``: a checkpoint's SPEC-section-3 metrics and plots.
+"""The evaluation run behind ``python -m src.eval``: a checkpoint's metrics (docs/evaluation.md) and plots.
 
 The model is rebuilt from the checkpoint's own ``run_config`` (weights loaded with
 ``weights_only=True``); the test set is the checkpoint's dataset unless ``dataset=...`` is given.

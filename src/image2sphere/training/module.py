@@ -13,7 +13,7 @@ Conventions
   optionally ``skipped``: corrupt images dropped from the batch (``dataset.on_corrupt=skip``). They are
   counted (``<stage>/skipped_images``, and ``skipped_images`` in the test metrics); a batch whose images
   were all skipped is ``None`` and is passed over.
-* Metrics follow SPEC section 3 (:mod:`image2sphere.metrics`): validation at ``val_grid_level``,
+* Metrics follow docs/evaluation.md (:mod:`image2sphere.metrics`): validation at ``val_grid_level``,
   test at ``eval_grid_level`` (spread at ``spread_grid_level``). The final test metrics are kept in
   :attr:`test_metrics` and logged as ``test/<metric>[/<class>]``.
 """
@@ -55,7 +55,7 @@ class NonFiniteLossError(FloatingPointError):
 
 
 class PoseEstimationModule(pl.LightningModule):
-    """Cross-entropy training on an SO(3) grid and SPEC-section-3 evaluation.
+    """Cross-entropy training on an SO(3) grid and the evaluation of docs/evaluation.md.
 
     Args:
         net: the pose network (built by Hydra from ``model.net``).

@@ -1,6 +1,6 @@
 """Datasets: the SYMSOL renderer, dataset readers and LightningDataModules.
 
-Readers of the published layouts (SPEC section 4): :mod:`~image2sphere.data.symsol` (SYMSOL I/II),
+Readers of the published layouts (described in docs/datasets.md): :mod:`~image2sphere.data.symsol` (SYMSOL I/II),
 :mod:`~image2sphere.data.modelnet` (ModelNet10-SO(3), LMDB read directly),
 :mod:`~image2sphere.data.pascal3d` (PASCAL3D+ with RenderForCNN). ``python -m
 image2sphere.data.verify`` checks a download; :mod:`image2sphere.data.fixtures` writes tiny copies.

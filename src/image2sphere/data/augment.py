@@ -3,12 +3,13 @@ perspective warp of a box onto a virtual camera (PASCAL3D+, RenderForCNN).
 
 Conventions
 -----------
-* Rotations ``R`` ``(..., 3, 3)`` with ``x_camera = R @ x_object`` (SPEC section 1).
+* Rotations ``R`` ``(..., 3, 3)`` with ``x_camera = R @ x_object`` (docs/conventions.md).
 * Two camera frames appear. The *GL frame* (``x`` right, ``y`` up, ``z`` toward the viewer) is the
-  frame of every rotation label in this project (the SYMSOL renderer's and PASCAL3D+'s, SPEC
-  section 4). The *CV frame* (``x`` right, ``y`` down, ``z`` along the viewing direction) is the
-  frame of pixel geometry, ``pixel ~ K @ x_cv``. They differ by ``GL_TO_CV = diag(1, -1, -1)``, a
-  rotation by pi about ``x`` (its own inverse): ``x_cv = GL_TO_CV @ x_gl``.
+  frame of every rotation label in this project (the SYMSOL renderer's and PASCAL3D+'s, see
+  docs/datasets.md#pascal3d-camera-frame-and-labels). The *CV frame* (``x`` right, ``y`` down, ``z``
+  along the viewing direction) is the frame of pixel geometry, ``pixel ~ K @ x_cv``. They differ by
+  ``GL_TO_CV = diag(1, -1, -1)``, a rotation by pi about ``x`` (its own inverse):
+  ``x_cv = GL_TO_CV @ x_gl``.
 * Pixel coordinates are continuous: pixel ``(row i, column j)`` covers ``[j, j+1] x [i, i+1]`` and
   its centre is ``(j + 0.5, i + 0.5)`` (Pillow's convention for geometric transforms). MATLAB-style
   1-based coordinates (PASCAL3D+ annotations), where pixel ``p`` has its centre at ``p``, are
@@ -24,7 +25,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from PIL import Image
+from PIL import Image, ImageTransform
 
 __all__ = [
     "GL_TO_CV",
@@ -139,11 +140,11 @@ def warp_image(image: Image.Image, H: np.ndarray, out_size: int) -> np.ndarray:
         H = H @ np.diag([float(factor), float(factor), 1.0])  # reduced pixel x/factor is source pixel x
     H_inv = np.linalg.inv(H)
     H_inv /= H_inv[2, 2]
+    # fill=1: output pixels that see nothing of the source are set to zero (black)
     warped = image.transform(
         (out_size, out_size),
-        Image.Transform.PERSPECTIVE,
-        tuple(H_inv.reshape(-1)[:8]),
+        ImageTransform.PerspectiveTransform(tuple(H_inv.reshape(-1)[:8])),
         resample=Image.Resampling.BILINEAR,
-        fillcolor=(0, 0, 0),
+        fill=1,
     )
     return np.asarray(warped, dtype=np.uint8).copy()

@@ -65,12 +65,15 @@ class DatasetNotFoundError(FileNotFoundError):
     """A dataset is not where the configuration says (see :func:`missing_dataset_error`)."""
 
 
-def missing_dataset_error(name: str, looked_at: Path, expected: str, get_from: str, key: str) -> DatasetNotFoundError:
+def missing_dataset_error(
+    name: str, looked_at: Path, expected: str, get_from: str, key: str, docs: str | None = None
+) -> DatasetNotFoundError:
     """The error for a dataset that is missing or incomplete: where we looked, what should be there,
-    where to get it and which config key points at it."""
+    where to get it, which config key points at it and (``docs``) where the layout is described."""
+    see = f" (the layout is described in {docs})" if docs else ""
     return DatasetNotFoundError(
         f"{name} not found at {looked_at}: expected {expected}. Get it from {get_from} and unpack it there, "
-        f"or point {key} at your copy"
+        f"or point {key} at your copy{see}"
     )
 
 

@@ -1,7 +1,7 @@
 """ModelNet10-SO(3) (Liao et al. 2019) in its published layout (that of ``ModelNet10-SO3.tar.gz``).
 
-Layout
-------
+Layout (docs/datasets.md#modelnet10-so3-layout)
+-----------------------------------------------
 ``{root}/{split}.Rawjpg.lmdb/`` for ``split`` in ``train_100V`` (100 views per training instance,
 the paper's full training set), ``train_20V`` (20 views, the "limited" set) and ``test_20V``. Each
 is an LMDB environment directory (``data.mdb``, optionally ``lock.mdb``) whose keys are view ids
@@ -111,6 +111,7 @@ GET_FROM = (
     "http://isis-data.science.uva.nl/shuai/datasets/ModelNet10-SO3.tar.gz "
     "(linked from github.com/leoshine/Spherical_Regression)"
 )
+DOCS = "docs/datasets.md#modelnet10-so3-layout"
 REMEDY = f"re-extract ModelNet10-SO3.tar.gz (re-download it from {GET_FROM} if the archive itself is short)"
 MAX_LISTED = 5  # keys listed per problem in verify; the counts say how many there are in all
 
@@ -197,7 +198,9 @@ def _read_quaternion_dict(pkl: Path) -> dict[str, object]:
     plain containers: nothing of it is run)."""
     raw = load_pickle(pkl, encoding="latin1", remedy=f"re-download the dataset from {GET_FROM}")
     if not isinstance(raw, dict):
-        raise ValueError(f"{pkl} must hold a dict view id -> quaternion (w, x, y, z), got {type(raw).__name__}")
+        raise ValueError(
+            f"{pkl} must hold a dict view id -> quaternion (w, x, y, z), got {type(raw).__name__} (see {DOCS})"
+        )
     return {(k.decode("latin1") if isinstance(k, bytes) else str(k)): v for k, v in raw.items()}
 
 
@@ -272,7 +275,7 @@ def load_modelnet10_labels(directory: str | Path) -> ModelNet10Labels:
     if not pkl.is_file():
         raise FileNotFoundError(
             f"ModelNet10-SO(3) labels not found: {pkl} (expected {QUATERNION_FILE} inside every "
-            "{split}.Rawjpg.lmdb folder)"
+            f"{{split}}.Rawjpg.lmdb folder; see {DOCS})"
         )
     raw = _read_quaternion_dict(pkl)
     if not raw:
@@ -306,7 +309,7 @@ def _check_split_files(root: Path, splits: Iterable[str]) -> None:
     if (root / "ModelNet10-SO3").is_dir():
         expected += f"; {root / 'ModelNet10-SO3'} exists: did you mean that folder?"
     if not root.is_dir():
-        raise missing_dataset_error(DATASET_NAME, root, expected, GET_FROM, "dataset.root")
+        raise missing_dataset_error(DATASET_NAME, root, expected, GET_FROM, "dataset.root", DOCS)
     missing = [
         str(lmdb_dir(root, s) / name)
         for s in splits
@@ -315,7 +318,7 @@ def _check_split_files(root: Path, splits: Iterable[str]) -> None:
     ]
     if missing:
         raise missing_dataset_error(
-            DATASET_NAME, root, f"{expected}; missing: {', '.join(missing)}", GET_FROM, "dataset.root"
+            DATASET_NAME, root, f"{expected}; missing: {', '.join(missing)}", GET_FROM, "dataset.root", DOCS
         )
 
 
@@ -557,7 +560,9 @@ def verify_modelnet10(
     if unknown:
         raise ValueError(f"splits must be among {MODELNET10_SPLITS}, got {unknown}")
     if not root.is_dir():
-        report.problems.append(f"{root} does not exist: expected the unpacked ModelNet10-SO3 folder from {GET_FROM}")
+        report.problems.append(
+            f"{root} does not exist: expected the unpacked ModelNet10-SO3 folder from {GET_FROM} (see {DOCS})"
+        )
         return report
     for split in splits:
         directory = lmdb_dir(root, split)

@@ -1,7 +1,7 @@
 """PASCAL3D+ (release 1.1) with RenderForCNN synthetic images, in their published layouts.
 
-Layout (SPEC section 4)
------------------------
+Layout (docs/datasets.md#pascal3d-layout)
+-----------------------------------------
 ``root`` (the unpacked ``PASCAL3D+_release1.1``)::
 
     Images/{cls}_pascal/{id}.jpg           Images/{cls}_imagenet/{id}.JPEG
@@ -112,6 +112,8 @@ RENDERFORCNN_URL = (
 # RenderForCNN names angles as 3-digit integers (its README: a tilt written t016 is -16 = 344 degrees
 # in PASCAL3D+'s convention); a minus sign is accepted too
 _SYNTHETIC_NAME = re.compile(r"^(\d{8})_([0-9a-f]+)_a(-?\d+)_e(-?\d+)_t(-?\d+)_d(-?\d+)\.png$")
+PASCAL3D_DOCS = "docs/datasets.md#pascal3d-layout"
+RENDERFORCNN_DOCS = "docs/datasets.md#renderforcnn-synthetic-images"
 _VOC_LISTS = Path("PASCAL", "VOCdevkit", "VOC2012", "ImageSets", "Main")
 DEFAULT_AUGMENT = {"flip": True, "box_jitter": 0.1, "roll_std_deg": 7.6}
 
@@ -209,7 +211,10 @@ def read_pascal3d_annotation(path: str | Path) -> list[dict]:
     except FileNotFoundError:
         raise FileNotFoundError(f"annotation file not found: {path}") from None
     except Exception as e:  # scipy raises several types for damaged files
-        raise ValueError(f"cannot read PASCAL3D+ annotation {path} ({type(e).__name__}: {e})") from e
+        raise ValueError(
+            f"cannot read PASCAL3D+ annotation {path} ({type(e).__name__}: {e}); expected a .mat file holding "
+            f"record.objects (see {PASCAL3D_DOCS})"
+        ) from e
     out = []
     for obj in objects:
         fields = set(getattr(obj, "_fieldnames", []))
@@ -278,7 +283,7 @@ def _split_sources(root: Path, cls: str, split: str) -> list[tuple[str, Path]]:
 
 def _read_ids(path: Path) -> list[str]:
     if not path.is_file():
-        raise FileNotFoundError(f"PASCAL3D+ image list not found: {path}")
+        raise FileNotFoundError(f"PASCAL3D+ image list not found: {path} (see {PASCAL3D_DOCS})")
     ids = []
     for line in path.read_text().splitlines():
         parts = line.split()
@@ -388,7 +393,8 @@ def parse_renderforcnn_name(name: str) -> tuple[str, int, int, int, int]:
     m = _SYNTHETIC_NAME.match(name)
     if m is None:
         raise ValueError(
-            f"{name!r} is not a RenderForCNN image name ({{synset}}_{{md5}}_a{{az}}_e{{el}}_t{{tilt}}_d{{dist}}.png)"
+            f"{name!r} is not a RenderForCNN image name ({{synset}}_{{md5}}_a{{az}}_e{{el}}_t{{tilt}}_d{{dist}}.png; "
+            f"see {RENDERFORCNN_DOCS})"
         )
     synset, _, a, e, t, d = m.groups()
     return synset, int(a), int(e), int(t), int(d)
@@ -559,6 +565,7 @@ def _check_layout(root: Path) -> None:
             f"{_VOC_LISTS.as_posix()}/" + (f" (missing: {', '.join(missing)})" if missing else ""),
             PASCAL3D_URL,
             "dataset.root",
+            PASCAL3D_DOCS,
         )
 
 
@@ -571,6 +578,7 @@ def _check_synthetic_layout(root: Path) -> None:
             "{md5}/{synset}_{md5}_a{az}_e{el}_t{tilt}_d{dist}.png",
             RENDERFORCNN_URL + "; or train without them: dataset.synthetic_root=null",
             "dataset.synthetic_root",
+            RENDERFORCNN_DOCS,
         )
 
 

@@ -2,7 +2,7 @@
 
 Conventions
 -----------
-* Rotation matrices ``(..., 3, 3)``, column vectors, ``x_camera = R @ x_object`` (SPEC section 1);
+* Rotation matrices ``(..., 3, 3)``, column vectors, ``x_camera = R @ x_object`` (docs/conventions.md);
   shapes, object frame and units as in :mod:`image2sphere.data.shapes`.
 * Camera: orthographic; camera frame ``x`` right, ``y`` up, ``z`` toward the viewer; rays travel along
   ``-z``. The image covers ``[-1, 1]^2`` of the camera ``x-y`` plane; image row 0 is the top
@@ -19,8 +19,8 @@ Conventions
   ``S`` give the same image up to float error.
 * Images are ``torch.uint8`` ``(..., H, W, 3)`` RGB.
 
-SYMSOL layout (SPEC section 4) written by :func:`render_symsol`
-------------------------------------------------------------------
+SYMSOL layout written by :func:`render_symsol` (docs/datasets.md#symsol-layout, docs/renderer.md)
+--------------------------------------------------------------------------------------------------
 ``root/{split}/images/{shape}_{i:05d}.png`` (RGB, ``i`` 0-based per shape = row of the npz) and
 ``root/{split}/rotations.npz``: one key per shape, float32 ``(N, M, 3, 3)``, ``[:, 0]`` the rendering
 rotation. For marked shapes ``M`` varies between images; the arrays are NaN-padded to the largest ``M``
@@ -91,7 +91,8 @@ DIFFUSE = 0.7
 LABEL_BACKGROUND, LABEL_BODY, LABEL_MARK_DISC, LABEL_MARK_DOT = 0, 1, 2, 3
 
 FORMAT_VERSION = 1
-# Bump whenever the geometry, colours, shading or sampling change: cached sets are then re-rendered.
+# Bump whenever the geometry, colours, shading or sampling change: a cached set rendered by another version
+# then no longer matches, and render_symsol refuses it (delete it to render it again).
 RENDERER_VERSION = 1
 
 _BIG = 1e30  # stands for an infinite ray parameter

@@ -2,7 +2,7 @@
 
 Conventions
 -----------
-* Rotation matrices ``(..., 3, 3)`` act on column vectors: ``x_camera = R @ x_object`` (SPEC section 1).
+* Rotation matrices ``(..., 3, 3)`` act on column vectors: ``x_camera = R @ x_object`` (docs/conventions.md).
 * Object frame: ``y`` is the axis of the cone (apex on ``+y``) and of the cylinder. Lengths are in units
   of the image half-width: the renderer's orthographic image covers ``[-1, 1]^2`` of the camera
   ``x-y`` plane, and every shape lies inside the ball of radius :data:`BOUND_RADIUS` (0.85) around the

@@ -1,7 +1,7 @@
 """SYMSOL in its published layout (that of ``symsol_dataset.zip``), rendered by this project or downloaded.
 
-Layout
-------
+Layout (docs/datasets.md#symsol-layout)
+---------------------------------------
 ``{root}/{train,test}/images/{shape}_{i:05d}.png`` and ``{root}/{split}/rotations.npz`` with one
 key per shape, each ``(N, M, 3, 3)``: the rotations equivalent under the shape's symmetry for every
 image, ``[:, 0]`` the rendering rotation. Where ``M`` varies between images (marked shapes of
@@ -56,6 +56,7 @@ log = logging.getLogger(__name__)
 
 LABEL_MODES = ("random", "first")
 ORTHONORMAL_ATOL = 1e-3
+SYMSOL_DOCS = "docs/datasets.md#symsol-layout"
 SYMSOL_URL = (
     "https://storage.googleapis.com/gresearch/implicit-pdf/symsol_dataset.zip "
     "(linked from github.com/google-research/google-research/tree/master/implicit_pdf)"
@@ -79,7 +80,8 @@ def _dense_from_object(path: Path, shape: str, a: np.ndarray) -> tuple[np.ndarra
     """``(dense (N, M_max, 3, 3) float32, real (N, M_max))`` of an object array of ``(M_i, 3, 3)`` arrays."""
     if a.ndim != 1:
         raise ValueError(
-            f"{path}[{shape!r}]: an object array must be 1-D (one (M_i, 3, 3) array per image), got shape {a.shape}"
+            f"{path}[{shape!r}]: an object array must be 1-D (one (M_i, 3, 3) array per image), got shape {a.shape} "
+            f"(see {SYMSOL_DOCS})"
         )
     rows = []
     for i, r in enumerate(a):
@@ -174,13 +176,16 @@ def load_symsol_rotations(split_dir: str | Path, shapes: Sequence[str]) -> dict[
     path = Path(split_dir) / "rotations.npz"
     if not path.is_file():
         raise FileNotFoundError(
-            f"SYMSOL rotations not found: {path} (expected {{split}}/rotations.npz next to {{split}}/images/)"
+            f"SYMSOL rotations not found: {path} (expected {{split}}/rotations.npz next to {{split}}/images/; "
+            f"see {SYMSOL_DOCS})"
         )
     remedy = f"re-download {SYMSOL_URL} and unzip it again (or re-render the set)"
     keys = npz_keys(path, remedy)
     for shape in shapes:
         if shape not in keys:
-            raise ValueError(f"{path} has no key {shape!r} (keys: {sorted(keys)})")
+            raise ValueError(
+                f"{path} has no key {shape!r} (keys: {sorted(keys)}; expected one key per shape, see {SYMSOL_DOCS})"
+            )
     arrays = load_npz(path, list(dict.fromkeys(shapes)), remedy)
     out = {}
     for shape in shapes:
@@ -190,7 +195,7 @@ def load_symsol_rotations(split_dir: str | Path, shapes: Sequence[str]) -> dict[
             kind = "object array"
         else:
             if a.ndim != 4 or a.shape[-2:] != (3, 3):
-                raise ValueError(f"{path}[{shape!r}] must have shape (N, M, 3, 3), got {a.shape}")
+                raise ValueError(f"{path}[{shape!r}] must have shape (N, M, 3, 3), got {a.shape} (see {SYMSOL_DOCS})")
             if a.dtype.kind not in "fiu":
                 raise ValueError(f"{path}[{shape!r}] must hold numbers (float), got dtype {a.dtype}")
             dense = a.astype(np.float32, copy=True)
@@ -436,6 +441,7 @@ class SymsolDataModule(PoseDataModule):
                 "rotations.npz" + (f" (missing: {', '.join(missing)})" if missing else ""),
                 SYMSOL_URL,
                 "dataset.root",
+                SYMSOL_DOCS,
             )
 
     def prepare_data(self) -> None:
@@ -499,7 +505,9 @@ def verify_symsol(
     root = Path(root)
     report = VerifyReport("SYMSOL", root)
     if not root.is_dir():
-        report.problems.append(f"{root} does not exist: expected the unzipped symsol_dataset.zip from {SYMSOL_URL}")
+        report.problems.append(
+            f"{root} does not exist: expected the unzipped symsol_dataset.zip from {SYMSOL_URL} (see {SYMSOL_DOCS})"
+        )
         return report
     for split in ("train", "test"):
         path = root / split / "rotations.npz"

@@ -1,11 +1,11 @@
-"""Every command that README.md and the comments of ``conf/**/*.yaml`` show is run here, as written.
+"""Every command that README.md, docs/*.md and the comments of ``conf/**/*.yaml`` show is run here, as written.
 
 The commands are read from the documents themselves, so a changed or added command is tested without
 touching this file:
 
-* README.md: every line of its ```bash blocks (trailing ``# comments`` removed), every inline code span
-  that starts with a command word (``python``, ``pip``, ``wandb``, ``jupyter`` ...), and its ```python
-  blocks;
+* README.md and docs/*.md: every line of their ```bash blocks (trailing ``# comments`` removed), every
+  inline code span that starts with a command word (``python``, ``pip``, ``wandb``, ``jupyter`` ...),
+  and their ```python blocks;
 * conf/**/*.yaml: comment lines of the form ``#   python -m ...`` and code spans in comments.
 
 Optional arguments in square brackets are run when they are concrete (``[top_k=5]``) and left out when
@@ -31,7 +31,8 @@ here, ``benchmarks`` to this checkout's. Placeholders are filled in: ``<run>`` a
 * external tools (``SKIPPED``) are listed with the reason they are not run.
 
 Marked slow (run by the full suite only): the benchmark, training sweeps of more than four jobs, and
-commands that only config comments show (variants of README commands that the quick run covers).
+commands that the README does not show (those of docs/ and config comments: variants of README
+commands that the quick run covers).
 """
 
 from __future__ import annotations
@@ -57,6 +58,8 @@ from test_train_entry import ENV, SMOKE, TINY, run_train
 
 REPO = Path(__file__).resolve().parents[1]
 README = REPO / "README.md"
+# the Markdown documents whose commands are run: the README first, then every page of docs/
+DOCUMENTS = [README, *sorted((REPO / "docs").glob("*.md"))]
 CI = REPO / ".ci" / "run"
 
 # first words of inline code spans that are commands (the rest of the README's spans are keys and values)
@@ -89,7 +92,7 @@ def _strip_comment(line: str) -> str:
     return re.sub(r"\s+#\s.*$", "", line).strip()
 
 
-def _fenced_blocks(text: str) -> list[tuple[str, int, list[str]]]:
+def _fenced_blocks(text: str, name: str = "README.md") -> list[tuple[str, int, list[str]]]:
     """``(language, line number of the first content line, lines)`` of every fenced block."""
     blocks, lang, start, lines = [], None, 0, []
     for number, line in enumerate(text.splitlines(), 1):
@@ -101,7 +104,7 @@ def _fenced_blocks(text: str) -> list[tuple[str, int, list[str]]]:
             lang = None
         elif lang is not None:
             lines.append(line)
-    assert lang is None, "README.md has an unclosed code fence"
+    assert lang is None, f"{name} has an unclosed code fence"
     return blocks
 
 
@@ -131,11 +134,17 @@ def _is_command_span(span: str) -> bool:
     return _first_words(span) in COMMAND_WORDS and len(span.split()) > 1
 
 
-def readme_commands() -> list[tuple[str, str]]:
-    """``(command, README.md:line)`` of every command README.md shows, in order."""
-    text = README.read_text()
+def markdown_commands() -> list[tuple[str, str]]:
+    """``(command, <document>:line)`` of every command README.md and docs/*.md show, in order."""
     found = []
-    for lang, start, lines in _fenced_blocks(text):
+    for document in DOCUMENTS:
+        found += _commands_of(document.read_text(), document.relative_to(REPO).as_posix())
+    return found
+
+
+def _commands_of(text: str, name: str) -> list[tuple[str, str]]:
+    found = []
+    for lang, start, lines in _fenced_blocks(text, name):
         if lang not in ("bash", "sh", "shell", "console"):
             continue
         joined: list[tuple[int, str]] = []
@@ -147,16 +156,21 @@ def readme_commands() -> list[tuple[str, str]]:
         for number, line in joined:
             command = _strip_comment(line)
             if command and not command.startswith("#"):
-                found.append((command, f"README.md:{number}"))
+                found.append((command, f"{name}:{number}"))
     for number, span in inline_spans(text):
         if _is_command_span(span):
-            found.append((span, f"README.md:{number}"))
+            found.append((span, f"{name}:{number}"))
     return found
 
 
-def readme_python_blocks() -> list[tuple[str, str]]:
-    return [("\n".join(lines), f"README.md:{start}") for lang, start, lines in _fenced_blocks(README.read_text())
-            if lang == "python"]  # fmt: skip
+def markdown_python_blocks() -> list[tuple[str, str]]:
+    """``(code, <document>:line)`` of every ```python block of README.md and docs/*.md."""
+    found = []
+    for document in DOCUMENTS:
+        name = document.relative_to(REPO).as_posix()
+        blocks = _fenced_blocks(document.read_text(), name)
+        found += [("\n".join(lines), f"{name}:{start}") for lang, start, lines in blocks if lang == "python"]
+    return found
 
 
 def config_commands() -> list[tuple[str, str]]:
@@ -197,7 +211,7 @@ def expand_optional(text: str) -> tuple[str, list[str]]:
 def documented_commands() -> list[Command]:
     """Every distinct command (after :func:`expand_optional`) with all the places that show it."""
     commands: dict[str, Command] = {}
-    for text, where in readme_commands() + config_commands():
+    for text, where in markdown_commands() + config_commands():
         key = expand_optional(text)[0]
         commands.setdefault(key, Command(key)).where.append(where)
     return list(commands.values())
@@ -207,7 +221,7 @@ COMMANDS = documented_commands()
 
 
 def _placeholders_of(text: str) -> list[str]:
-    for raw, _ in readme_commands() + config_commands():
+    for raw, _ in markdown_commands() + config_commands():
         if expand_optional(raw)[0] == text:
             yield from expand_optional(raw)[1]
 
@@ -240,15 +254,17 @@ def test_extraction_finds_the_documented_commands():
     assert any(w.startswith("README.md:") for w in where["python -m src.train"])
     assert any(w.startswith("conf/train.yaml:") for w in where["python -m src.train"])
     assert any(w.startswith("conf/experiment/") for t in texts for w in where[t] if "experiment=pascal3d" in t)
+    # docs/ is read too
+    assert any(w.startswith("docs/configuration.md:") for w in where["python -m src.train protocol=paper"])
     # no fenced block hides commands from the extractor: every bash block yields at least one
-    readme = README.read_text()
-    bash_blocks = [b for b in _fenced_blocks(readme) if b[0] == "bash"]
-    assert len(bash_blocks) >= 10
-    for _, start, lines in bash_blocks:
-        assert any(w == f"README.md:{start + i}" for i in range(len(lines)) for c in COMMANDS for w in c.where), (
-            f"the bash block at README.md:{start} yields no command"
+    bash_blocks = [(document.relative_to(REPO).as_posix(), block) for document in DOCUMENTS
+                   for block in _fenced_blocks(document.read_text()) if block[0] == "bash"]  # fmt: skip
+    assert sum(name == "README.md" for name, _ in bash_blocks) >= 10
+    for name, (_, start, lines) in bash_blocks:
+        assert any(w == f"{name}:{start + i}" for i in range(len(lines)) for c in COMMANDS for w in c.where), (
+            f"the bash block at {name}:{start} yields no command"
         )
-    assert len(readme_python_blocks()) >= 2
+    assert len(markdown_python_blocks()) >= 2
     # every command word has a runner or is skipped with a reason (see test_documented_command)
     for command in COMMANDS:
         assert _first_words(command.text) in ("python", "pip") or _first_words(command.text, 2) in SKIPPED, command
@@ -610,6 +626,9 @@ def check_render(argv, proc, args: list[str], ws: Workspace) -> None:
     from image2sphere.data.render import _build_parser
 
     assert proc.returncode == 0, describe(argv, proc)
+    if "--help" in args:  # the options listed, nothing written
+        assert proc.stdout.startswith("usage:") and "--image-size" in proc.stdout, describe(argv, proc)
+        return
     options = _build_parser().parse_args(args[2:])  # what the documented arguments ask for
     root = ws.root / options.root
     for split in ("train", "test"):
@@ -673,9 +692,24 @@ def check_pytest(command: str) -> None:
     assert lines[-1] == command, f".ci/run ends with {lines[-1]!r}, not the README's test command {command!r}"
 
 
+def render_documented_sets(args: list[str], ws: Workspace) -> None:
+    """A documented training run on a set that a documented render command writes (``dataset.root=data/x``):
+    that render command runs first, as the documents say (it does nothing when the set is already there)."""
+    for arg in args:
+        key, _, value = arg.partition("=")
+        if key != "dataset.root" or not value.startswith("data/") or (ws.root / value).exists():
+            continue
+        renders = [c.text for c in COMMANDS if shlex.split(c.text)[1:4] == ["-m", "image2sphere.data.render", value]]
+        assert renders, f"{value} is neither a fixture nor written by a documented render command"
+        argv = [sys.executable, *shlex.split(renders[0])[1:]]
+        proc = run_in(ws, argv)
+        assert proc.returncode == 0, describe(argv, proc)
+
+
 def _param(command: Command):
     """A parametrized case. Slow: the benchmark, training sweeps of more than four jobs, and commands that
-    only config comments show (variants of the README's, which the quick run covers)."""
+    the README does not show (docs/ and config comments: variants of the README's, which the quick run
+    covers)."""
     words = shlex.split(command.text)
     slow = words[:2] == ["python", "benchmarks/grid_eval.py"]
     slow = slow or not any(w.startswith("README.md:") for w in command.where) and _first_words(command.text) == "python"
@@ -708,6 +742,7 @@ def test_documented_command(command: Command, fixtures_root, checkpoint_run, tmp
     assert args[0] == "-m", f"no runner for {text!r}"
     module, rest = args[1], args[2:]
     if module == "src.train":
+        render_documented_sets(rest, ws)
         weights = [PRETRAINED.match(a).group(1) for a in rest if PRETRAINED.match(a)]
         argv += train_additions(rest, ws)
         proc = run_in(ws, argv)
@@ -784,9 +819,10 @@ def test_claim_checks_can_fail():
 
 
 @pytest.mark.parametrize(
-    "block", [pytest.param(b, id=where) for b, where in readme_python_blocks()]
+    "block", [pytest.param(b, id=where, marks=[] if where.startswith("README.md:") else [pytest.mark.slow])
+              for b, where in markdown_python_blocks()]
 )  # fmt: skip
-def test_readme_python_block(block, fixtures_root, checkpoint_run, tmp_path):
+def test_markdown_python_block(block, fixtures_root, checkpoint_run, tmp_path):
     ws = make_workspace(tmp_path / "repo", fixtures_root, checkpoint_run)
     block = block.replace("logs/train/runs/<run>", f"logs/train/runs/{ws.run.name}")
     for node in ast.walk(ast.parse(block)):
@@ -796,5 +832,5 @@ def test_readme_python_block(block, fixtures_root, checkpoint_run, tmp_path):
     code, claims = with_claim_checks(block)
     argv = [sys.executable, "-c", code]
     proc = run_in(ws, argv, timeout=600)
-    assert proc.returncode == 0, describe(["python", "-c", "<README block>"], proc) + "\n" + code
+    assert proc.returncode == 0, describe(["python", "-c", "<documented block>"], proc) + "\n" + code
     assert f"CLAIMS CHECKED {claims}" in proc.stdout, proc.stdout

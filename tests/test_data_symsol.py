@@ -217,3 +217,24 @@ def test_verify_counts_against_the_release_and_lists_unreadable_images(tmp_path)
     assert report.unreadable == [str(root / "test" / "images" / "tetX_00001.png")]
     assert report.problems == [f"missing image {root / 'train' / 'images' / 'cube_00003.png'}"]
     assert "FAILED" in report.format()
+
+
+def test_rendered_cache_folder_names_every_parameter_and_the_renderer_version(tmp_path, monkeypatch):
+    """A set rendered with other parameters, or by another renderer version, lands in another folder:
+    an old cache is never reused for a different set (nor refused, nor deleted)."""
+    import image2sphere.data.render as render_module
+
+    def root(**render):
+        spec = {"train": 8, "test": 4, "image_size": 32, "seed": 0, **render}
+        return SymsolDataModule(root=None, render=spec, render_dir=str(tmp_path), shapes=["cube"], image_size=32).root
+
+    base = root()
+    assert (
+        base.parent == tmp_path
+        and base.name == f"cube_32px_train8_test4_seed0_renderer{render_module.RENDERER_VERSION}"
+    )
+    assert root(supersample=3) != base and "supersample3" in root(supersample=3).name
+    assert root(seed=1) != base and root(train=9) != base
+    assert root(batch_size=2, progress=False) == base  # how it is rendered, not what
+    monkeypatch.setattr(render_module, "RENDERER_VERSION", render_module.RENDERER_VERSION + 1)
+    assert root() != base

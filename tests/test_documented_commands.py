@@ -569,7 +569,7 @@ def check_train(argv, proc, args: list[str], ws: Workspace) -> None:
         metrics = yaml.safe_load((run / "metrics.json").read_text())
         assert {"log_likelihood", "spread_deg", "acc15", "acc30", "median_error_deg"} <= set(metrics), metrics
         (rendered,) = (ws.root / "fresh_data" / "symsol_rendered").iterdir()
-        assert rendered.name == "cube-cone_96px_train2400_test200_seed0", rendered.name
+        assert rendered.name == "cube-cone_96px_train2400_test200_seed0_renderer1", rendered.name
 
 
 def check_eval(argv, proc, args: list[str], ws: Workspace) -> None:

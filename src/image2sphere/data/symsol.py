@@ -425,9 +425,17 @@ class SymsolDataModule(PoseDataModule):
         self.data_train = self.data_val = self.data_test = None
 
     def _render_tag(self) -> str:
-        r = self.render
-        shapes = "-".join(r.get("shapes", self.shapes))
-        return f"{shapes}_{r.get('image_size', 224)}px_train{r['train']}_test{r['test']}_seed{r.get('seed', 0)}"
+        """The cache folder's name: every render parameter and the renderer's version, so that a set
+        rendered with other parameters or by another version of the renderer is never reused (nor
+        deleted: it stays in its own folder)."""
+        from image2sphere.data.render import RENDERER_VERSION
+
+        r = dict(self.render)
+        shapes = "-".join(r.pop("shapes", self.shapes))
+        tag = f"{shapes}_{r.pop('image_size', 224)}px_train{r.pop('train')}_test{r.pop('test')}_seed{r.pop('seed', 0)}"
+        output_neutral = ("batch_size", "progress", "png_thread")  # change how, not what, is rendered
+        extra = "".join(f"_{key}{value}" for key, value in sorted(r.items()) if key not in output_neutral)
+        return f"{tag}{extra}_renderer{RENDERER_VERSION}"
 
     def _check_present(self) -> None:
         needed = [self.root / split / "rotations.npz" for split in ("train", "test")]

@@ -189,15 +189,40 @@ def test_docs_resolution_table_is_what_the_configs_compose(tmp_path):
         assert (size, batch) == (f"{cfg.dataset.image_size} px", str(cfg.dataset.batch_size)), dataset
 
 
+FOURIER_MODELS = {"i2s", "i2s_harmonic_projector", "i2s_spatial_filter", "i2s_no_so3_conv", "i2s_two_so3_conv",
+                  "fourier_mlp"}  # fmt: skip
+POINT_REGRESSORS = {"regression_6d", "regression_9d"}
+
+
 @pytest.mark.parametrize("model", options("model"))
 def test_every_model_variant_instantiates_and_runs(tmp_path, model):
+    """Every method's network, through the one interface: output -> distribution, and its loss."""
     import torch
+
+    from image2sphere.distributions import PoseDistribution
+    from image2sphere.so3 import random_rotations
 
     cfg = compose_cfg(tmp_path, [f"model={model}", "lmax=2", "dataset.image_size=64"])
     module = instantiate(cfg.model)
-    assert isinstance(module, PoseEstimationModule) and module.lmax == 2
+    assert isinstance(module, PoseEstimationModule)
+    torch.manual_seed(0)
     out = module(torch.randn(2, 3, 64, 64))
-    assert out.shape == (2, 35)
+    dist = module.net.output_distribution(out)
+    assert isinstance(dist, PoseDistribution) and dist.batch_size == 2
+    assert dist.has_density == (model not in POINT_REGRESSORS)
+    mode = dist.mode(2)
+    assert mode.shape == (2, 3, 3)
+    torch.testing.assert_close(mode.transpose(-1, -2) @ mode, torch.eye(3).expand(2, 3, 3), atol=1e-4, rtol=0)
+    if dist.has_density:  # the grid protocol: a normalised distribution on the grid
+        assert torch.isfinite(dist.log_normalizer(2)).all()
+        torch.testing.assert_close(dist.log_prob_grid(1).exp().sum(1), torch.ones(2), atol=1e-4, rtol=0)
+    loss = module.net.loss(out, random_rotations(2), 2)
+    assert loss.shape == (2,) and torch.isfinite(loss).all()
+    loss.mean().backward()
+    grads = [p.grad for p in module.net.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads)
+    if model in FOURIER_MODELS:
+        assert module.lmax == 2 and out.shape == (2, 35)
     expected = {
         "i2s_harmonic_projector": ("projector", "harmonic"),
         "i2s_spatial_filter": ("filter", "spatial"),
@@ -208,6 +233,12 @@ def test_every_model_variant_instantiates_and_runs(tmp_path, model):
         key, value = expected[model]
         assert cfg.model.net[key] == value
         assert len(module.net.so3_layers) == 2 * cfg.model.net.n_so3_conv
+
+
+def test_model_list_is_every_method():
+    assert set(options("model")) == FOURIER_MODELS | POINT_REGRESSORS | {
+        "ipdf", "matrix_fisher", "rotation_laplace", "bingham", "von_mises"
+    }  # fmt: skip
 
 
 @pytest.mark.parametrize("encoder", options("encoder"))

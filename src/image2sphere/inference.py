@@ -22,7 +22,8 @@ import torch
 from PIL import Image
 
 from image2sphere.data.common import image_to_uint8, load_image, normalize_images
-from image2sphere.so3.distribution import SO3Distribution, check_threshold
+from image2sphere.distributions.base import PoseDistribution, check_threshold
+from image2sphere.nn.base import method_of
 from image2sphere.so3.grid_eval import check_streamed_level
 from image2sphere.so3.rotations import matrix_to_angles
 from image2sphere.training.checkpoint import build_module, load_checkpoint
@@ -38,7 +39,8 @@ class Predictor:
     """A trained pose network with its preprocessing; call it on images to get distributions.
 
     Args:
-        net: the network (``lmax``, ``num_classes``, ``forward(images[, class_index])``).
+        net: the pose network (``num_classes``, ``forward(images[, class_index])``,
+            ``output_distribution(output)``: :class:`image2sphere.nn.base.PoseNetwork`).
         image_size: the square input size it was trained with.
         class_names: names of the class indices (for models with class-label input).
         device: where the network runs.
@@ -50,7 +52,8 @@ class Predictor:
         self.net = net.to(self.device).eval()
         self.image_size = int(image_size)
         self.class_names = list(class_names) if class_names else None
-        self.lmax = net.lmax
+        self.lmax = getattr(net, "lmax", None)
+        self.output_distribution = method_of(net)[0]
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str | torch.device = "cpu") -> Predictor:
@@ -121,7 +124,7 @@ class Predictor:
         return values.long().expand(batch_size) if batch_size is not None else values.long()
 
     @torch.no_grad()
-    def __call__(self, images: ImageLike | Sequence[ImageLike], class_index=None) -> SO3Distribution:
+    def __call__(self, images: ImageLike | Sequence[ImageLike], class_index=None) -> PoseDistribution:
         """The predicted distribution for each image (batch in the order given).
 
         ``class_index``: for models trained with class input, the class of the images (one integer,
@@ -130,8 +133,8 @@ class Predictor:
         self.check_class_index(class_index)  # before any image is read
         x = self.preprocess(images)
         classes = self.check_class_index(class_index, len(x))
-        coeffs = self.net(x) if classes is None else self.net(x, classes.to(self.device))
-        return SO3Distribution(coeffs, self.lmax)
+        output = self.net(x) if classes is None else self.net(x, classes.to(self.device))
+        return self.output_distribution(output)
 
 
 def format_modes(rotations: torch.Tensor, mass: torch.Tensor) -> str:

@@ -23,7 +23,7 @@ from functools import lru_cache
 
 import torch
 
-from image2sphere.so3.distribution import LOG_UNIFORM_DENSITY, SO3Distribution
+from image2sphere.distributions.base import LOG_UNIFORM_DENSITY, PoseDistribution
 from image2sphere.so3.grid import check_level, so3_grid_size, so3_healpix_grid, so3_healpix_nearest_index
 from image2sphere.so3.rotations import geodesic_distance_deg
 
@@ -55,7 +55,7 @@ def check_targets(targets: torch.Tensor, mask: torch.Tensor | None, batch: int |
     return mask
 
 
-def _fill_padding(targets: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+def fill_padding(targets: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Padding entries (possibly NaN) replaced by the image's first target, so they can be read safely."""
     return torch.where(mask[..., None, None], targets, targets[:, :1].expand_as(targets))
 
@@ -70,7 +70,7 @@ def min_angular_error_deg(pred: torch.Tensor, targets: torch.Tensor, mask: torch
 
 
 def log_likelihood_pairs(
-    dist: SO3Distribution,
+    dist: PoseDistribution,
     targets: torch.Tensor,
     mask: torch.Tensor | None,
     level: int,
@@ -81,7 +81,7 @@ def log_likelihood_pairs(
     ``log_normalizer`` ``(B,)``: the grid's logsumexp at ``level`` when already computed.
     """
     mask = check_targets(targets, mask, dist.batch_size)
-    ll = dist.log_density(_fill_padding(targets, mask), level, log_normalizer)  # [B, M]
+    ll = dist.log_density(fill_padding(targets, mask), level, log_normalizer)  # [B, M]
     return ll.masked_fill(~mask, math.nan)
 
 
@@ -100,7 +100,7 @@ def log_density_from_grid_logits(
             f"grid_logits must have shape (B, {n_points}) for level {level}, got {tuple(grid_logits.shape)}"
         )
     mask = check_targets(targets, mask, len(grid_logits))
-    index = so3_healpix_nearest_index(_fill_padding(targets, mask), level).to(grid_logits.device)  # [B, M]
+    index = so3_healpix_nearest_index(fill_padding(targets, mask), level).to(grid_logits.device)  # [B, M]
     log_p = torch.log_softmax(grid_logits, dim=1).gather(1, index)  # [B, M]
     return (log_p + math.log(n_points) + LOG_UNIFORM_DENSITY).masked_fill(~mask, math.nan)
 
@@ -111,7 +111,7 @@ def _flat_grid(level: int, dtype: torch.dtype, device: str) -> torch.Tensor:
 
 
 def spread_deg(
-    dist: SO3Distribution,
+    dist: PoseDistribution,
     targets: torch.Tensor,
     mask: torch.Tensor | None,
     level: int,
@@ -119,25 +119,25 @@ def spread_deg(
 ) -> torch.Tensor:
     """``sum_i p_i * min_j angle(R_i, R_gt_j)`` in degrees on the grid of ``level``: ``(B,)``.
 
-    The minimum over ground truths uses ``trace(R_i^T R_j) = <vec R_i, vec R_j>``: one matmul per
-    block of at most ``max_pairs`` (grid point, target) pairs.
+    ``p_i`` is the grid softmax of any density method (:meth:`PoseDistribution.log_prob_grid`). The
+    minimum over ground truths uses ``trace(R_i^T R_j) = <vec R_i, vec R_j>``: one matmul per block of
+    at most ``max_pairs`` (grid point, target) pairs.
     """
     mask = check_targets(targets, mask, dist.batch_size)
     level = check_level(level)
-    coeffs = dist.coeffs.detach()
-    grid = _flat_grid(level, coeffs.dtype, str(coeffs.device))  # [N, 9]
+    grid = _flat_grid(level, dist.dtype, str(dist.device))  # [N, 9]
     n = grid.shape[0]
-    out = coeffs.new_empty(dist.batch_size)
+    out = torch.empty(dist.batch_size, dtype=dist.dtype, device=dist.device)
     with torch.no_grad():
+        probs = dist.log_prob_grid(level).exp()  # [B, N]
         for b in range(dist.batch_size):
-            prob = SO3Distribution(coeffs[b : b + 1], dist.lmax).log_prob_grid(level)[0].exp()  # [N]
-            gt = targets[b][mask[b]].reshape(-1, 9).to(coeffs)  # [m, 9]
+            gt = targets[b][mask[b]].reshape(-1, 9).to(grid)  # [m, 9]
             block = max(1, max_pairs // len(gt))
-            total = coeffs.new_zeros(())
+            total = grid.new_zeros(())
             for i in range(0, n, block):
                 trace = (grid[i : i + block] @ gt.T).amax(dim=1)  # [n_block]  max trace = min angle
                 angle = torch.rad2deg(torch.acos(((trace - 1) / 2).clamp(-1.0, 1.0)))
-                total += (prob[i : i + block] * angle).sum()
+                total += (probs[b, i : i + block] * angle).sum()
             out[b] = total
     return out
 
@@ -154,13 +154,15 @@ def summarize_pose_metrics(
     ll_sum: torch.Tensor | None = None,
     ll_count: torch.Tensor | None = None,
     spread: torch.Tensor | None = None,
+    ll_exact_sum: torch.Tensor | None = None,
 ) -> dict[str, float]:
     """Per-class and class-averaged metrics from per-image records (all ``(n_images,)``).
 
     Keys: ``{metric}/{class}`` for each class present and ``{metric}`` for the mean over those
     classes, with metric in ``log_likelihood`` (mean over all pairs of the class, from per-image
     sums ``ll_sum`` and pair counts ``ll_count``), ``spread_deg``, ``acc15``, ``acc30``,
-    ``median_error_deg``; plus ``n_images``.
+    ``median_error_deg``, and ``log_likelihood_exact`` (the same mean of a family's continuous log
+    density, from ``ll_exact_sum``, for families with a closed-form normaliser); plus ``n_images``.
     """
     class_index = class_index.long().cpu()
     present = [c for c in range(len(class_names)) if (class_index == c).any()]
@@ -175,6 +177,9 @@ def summarize_pose_metrics(
         sel = class_index == c
         if ll_sum is not None and ll_count is not None:
             put("log_likelihood", c, float(ll_sum.cpu()[sel].double().sum() / ll_count.cpu()[sel].double().sum()))
+        if ll_exact_sum is not None and ll_count is not None:
+            count = ll_count.cpu()[sel].double().sum()
+            put("log_likelihood_exact", c, float(ll_exact_sum.cpu()[sel].double().sum() / count))
         if spread is not None:
             put("spread_deg", c, float(spread.cpu()[sel].double().mean()))
         if error_deg is not None:

@@ -11,7 +11,7 @@ Conventions
   proportional to ``p_i`` (the most probable point gets ``max_marker_area``). Ground-truth
   rotations are rings in the colour of their own ``gamma``.
 * Only the points above the threshold are ever materialised
-  (:meth:`image2sphere.so3.distribution.SO3Distribution.points_above`), so level 5 (2.36M points)
+  (:meth:`image2sphere.distributions.base.PoseDistribution.points_above`), so level 5 (2.36M points)
   is cheap. Figures are plain :class:`matplotlib.figure.Figure` objects (no pyplot state).
 """
 
@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from matplotlib.figure import Figure
 
-from image2sphere.so3.distribution import SO3Distribution
+from image2sphere.distributions.base import PoseDistribution
 from image2sphere.so3.grid import so3_healpix_index_to_matrix
 
 __all__ = ["FIGURE_FORMATS", "figure_format", "plot_dataset_item", "plot_so3_distribution", "rotation_to_plot_coords",
@@ -72,7 +72,7 @@ def _colour_wheel(fig: Figure, rect: tuple[float, float, float, float]) -> None:
 
 
 def plot_so3_distribution(
-    dist: SO3Distribution | None = None,
+    dist: PoseDistribution | None = None,
     level: int = 5,
     threshold: float | None = None,
     gt_rotations: torch.Tensor | np.ndarray | None = None,
@@ -99,10 +99,13 @@ def plot_so3_distribution(
     if dist is not None:
         if dist.batch_size != 1:
             raise ValueError(f"plot one distribution at a time (batch of 1), got a batch of {dist.batch_size}")
-        threshold = float(dist.default_threshold(level)[0]) if threshold is None else threshold
-        index, prob = dist.points_above(threshold, level)[0]
-        rotations = so3_healpix_index_to_matrix(index.cpu(), level, dtype=torch.float64)
-        probs = prob.cpu().double()
+        if not dist.has_density:  # a point estimate: one point, drawn at full size
+            rotations, probs, threshold = dist.mode().detach().cpu().double(), np.ones(1), None
+        else:
+            threshold = float(dist.default_threshold(level)[0]) if threshold is None else threshold
+            index, prob = dist.points_above(threshold, level)[0]
+            rotations = so3_healpix_index_to_matrix(index.cpu(), level, dtype=torch.float64)
+            probs = prob.cpu().double()
     elif rotations is None or probs is None:
         raise ValueError("pass dist, or rotations and probs")
     probs = np.asarray(probs.detach().cpu() if isinstance(probs, torch.Tensor) else probs, dtype=np.float64)
@@ -138,14 +141,14 @@ def plot_dataset_item(
 ) -> Figure:
     """The predicted distribution of one evaluation item of :mod:`image2sphere.data` (``image``,
     ``class_index``, ``rotations`` with ``mask``: drawn as rings) by ``model`` (a
-    :class:`~image2sphere.training.PoseEstimationModule`: ``model(images, class_index)`` -> coefficients,
-    ``model.lmax``). The title gets the item's class name appended."""
+    :class:`~image2sphere.training.PoseEstimationModule`, whose ``net`` turns its output into a
+    distribution). The title gets the item's class name appended."""
     device = next(model.parameters()).device
-    coeffs = model(item["image"][None].to(device), item["class_index"][None].to(device))
+    output = model(item["image"][None].to(device), item["class_index"][None].to(device))
     c = int(item["class_index"])
     name = class_names[c] if c < len(class_names) else c
     gt = item["rotations"][item["mask"]]
-    dist = SO3Distribution(coeffs.float(), model.lmax)
+    dist = model.output_distribution(output.float())
     return plot_so3_distribution(dist, level=level, threshold=threshold, gt_rotations=gt, title=f"{title} ({name})")
 
 

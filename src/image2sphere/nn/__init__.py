@@ -1,14 +1,25 @@
 """Neural network modules: encoders, image-to-sphere projectors, S2/SO(3) convolutions, pose networks."""
 
 from image2sphere.nn.activation import SO3ReLU
+from image2sphere.nn.base import PoseNetwork
 from image2sphere.nn.encoder import RESNET_DEPTHS, ResNetEncoder
+from image2sphere.nn.heads import BinghamNet, MatrixFisherNet, RotationLaplaceNet, VonMisesNet
 from image2sphere.nn.i2s import I2S, FourierMLP
+from image2sphere.nn.ipdf import IPDF
 from image2sphere.nn.projector import HarmonicS2Projector, SpatialS2Projector
+from image2sphere.nn.regression import RotationRegression
 from image2sphere.nn.s2_conv import S2Conv
 from image2sphere.nn.so3_conv import SO3Conv
 
 __all__ = [
+    "BinghamNet",
+    "MatrixFisherNet",
+    "RotationLaplaceNet",
+    "VonMisesNet",
     "I2S",
+    "IPDF",
+    "PoseNetwork",
+    "RotationRegression",
     "RESNET_DEPTHS",
     "FourierMLP",
     "HarmonicS2Projector",

@@ -15,10 +15,11 @@ import torch
 from torch import nn
 
 from image2sphere.nn.activation import SO3ReLU
+from image2sphere.nn.base import PoseNetwork
 from image2sphere.nn.projector import HarmonicS2Projector, SpatialS2Projector
 from image2sphere.nn.s2_conv import S2Conv
 from image2sphere.nn.so3_conv import SO3Conv
-from image2sphere.so3.distribution import SO3Distribution
+from image2sphere.so3.distribution import SO3Distribution, fourier_grid_nll
 from image2sphere.so3.grid import so3_tube_grid
 from image2sphere.so3.wigner import check_lmax, n_so3_coeffs
 
@@ -28,42 +29,23 @@ PROJECTORS = ("spatial", "harmonic")
 SO3_KERNELS = ("local", "tube")
 
 
-class _PoseNetwork(nn.Module):
-    """Shared parts: the encoder, the optional one-hot class channels, and the output distribution."""
+class _FourierNetwork(PoseNetwork):
+    """A network whose output is the Fourier coefficients of the log density's signal: trained as a
+    classifier over the SO(3) grid (cross-entropy at the point nearest the label)."""
 
     def __init__(self, encoder: nn.Module, image_size: int | tuple[int, int], lmax: int, num_classes: int):
-        super().__init__()
+        super().__init__(encoder, image_size, num_classes)
         self.lmax = check_lmax(lmax)
-        if num_classes < 0:
-            raise ValueError(f"num_classes must be >= 0, got {num_classes!r}")
-        self.encoder = encoder
-        self.num_classes = num_classes
-        self.image_size = image_size
-        self.feature_size = encoder.feature_size(image_size)
-        self.feature_channels = encoder.out_channels + num_classes
 
-    def features(self, images: torch.Tensor, class_index: torch.Tensor | None) -> torch.Tensor:
-        """Encoder map ``[B, C (+ num_classes), h, w]``, with the class one-hot as constant channels."""
-        x = self.encoder(images)
-        if self.num_classes == 0:
-            return x
-        if class_index is None:
-            raise ValueError(f"this model was built with num_classes={self.num_classes}: pass class_index")
-        class_index = torch.as_tensor(class_index, device=x.device)
-        if class_index.shape != (len(x),) or ((class_index < 0) | (class_index >= self.num_classes)).any():
-            raise ValueError(
-                f"class_index must be integers in [0, {self.num_classes}) of shape ({len(x)},), "
-                f"got shape {tuple(class_index.shape)}"
-            )
-        onehot = nn.functional.one_hot(class_index.long(), self.num_classes).to(x.dtype)  # [B, nc]
-        return torch.cat([x, onehot[:, :, None, None].expand(-1, -1, *x.shape[-2:])], dim=1)
+    def output_distribution(self, output: torch.Tensor) -> SO3Distribution:
+        return SO3Distribution(output, self.lmax)
 
-    def distribution(self, images: torch.Tensor, class_index: torch.Tensor | None = None) -> SO3Distribution:
-        """The predicted distribution over rotations for each image."""
-        return SO3Distribution(self(images, class_index), self.lmax)
+    def loss(self, output: torch.Tensor, rotation: torch.Tensor, grid_level: int) -> torch.Tensor:
+        """Cross-entropy ``(B,)`` against the grid point of ``grid_level`` nearest each label."""
+        return fourier_grid_nll(output, self.lmax, rotation, grid_level)
 
 
-class I2S(_PoseNetwork):
+class I2S(_FourierNetwork):
     """Image2Sphere: encoder -> projection onto S2 -> S2 conv -> (SO(3) ReLU -> SO(3) conv) x n.
 
     Args:
@@ -169,7 +151,7 @@ class I2S(_PoseNetwork):
         return x.squeeze(1)
 
 
-class FourierMLP(_PoseNetwork):
+class FourierMLP(_FourierNetwork):
     """Baseline "Fourier basis w/ MLP": pooled encoder features -> MLP -> SO(3) coefficients.
 
     Args:
@@ -201,5 +183,4 @@ class FourierMLP(_PoseNetwork):
 
     def forward(self, images: torch.Tensor, class_index: torch.Tensor | None = None) -> torch.Tensor:
         """Images ``[B, 3, H, W]`` -> SO(3) coefficients ``[B, n_so3_coeffs(lmax)]``."""
-        x = self.features(images, class_index).mean(dim=(-1, -2))  # [B, C]
-        return self.mlp(x)
+        return self.mlp(self.pooled_features(images, class_index))  # [B, C] -> [B, n_so3]

@@ -27,30 +27,24 @@ from image2sphere.so3.grid import (
     so3_healpix_nearest_index,
 )
 from image2sphere.so3.grid_eval import MAX_OUTPUT_BYTES, check_streamed_level, get_grid_evaluator
+from image2sphere.so3.pose_distribution import LOG_UNIFORM_DENSITY, PoseDistribution, check_threshold
 from image2sphere.so3.rotations import check_rotation_matrix, matrix_to_angles, rotvec_to_matrix
 from image2sphere.so3.wigner import check_lmax, default_dtype, flat_wigner, n_so3_coeffs, so3_blocks, wigner_D
 
-__all__ = ["LOG_UNIFORM_DENSITY", "SO3Distribution", "check_threshold"]
-
-LOG_UNIFORM_DENSITY = -math.log(math.pi**2)  # -2.2894
+__all__ = ["LOG_UNIFORM_DENSITY", "SO3Distribution", "check_threshold", "fourier_grid_nll"]
 
 
-def check_threshold(threshold, name: str = "threshold") -> torch.Tensor:
-    """A probability threshold (a number, or a tensor of them) as a float64 tensor; ``ValueError``
-    unless every value is a probability in ``(0, 1]``."""
-    message = f"{name} must be > 0 and <= 1 (a probability in (0, 1]), got {{!r}}"
-    if isinstance(threshold, (bool, str)) or threshold is None:
-        raise ValueError(message.format(threshold))
-    try:
-        values = torch.as_tensor(threshold, dtype=torch.float64).detach().cpu()
-    except (TypeError, ValueError, RuntimeError):
-        raise ValueError(message.format(threshold)) from None
-    if not ((values > 0) & (values <= 1)).all():  # NaN fails both comparisons
-        raise ValueError(message.format(threshold if values.numel() == 1 else values.tolist()))
-    return values
+def fourier_grid_nll(coeffs: torch.Tensor, lmax: int, rotation: torch.Tensor, level: int) -> torch.Tensor:
+    """I2S's training loss ``(B,)``: the cross-entropy of the grid softmax of the signal ``coeffs
+    (B, n_so3_coeffs(lmax))`` at ``level`` against the grid point nearest each ``rotation (B, 3, 3)``,
+    ``logsumexp_i f(R_i) - f(R_label)``, streamed. Not-finite coefficients give a not-finite loss
+    (for the caller to report) rather than an error here."""
+    ev = get_grid_evaluator(lmax, check_streamed_level(level), coeffs.dtype, coeffs.device)
+    index = so3_healpix_nearest_index(rotation.detach(), level).to(coeffs.device)  # [B]
+    return ev.logsumexp(coeffs) - ev.logits_at(coeffs, index[:, None])[:, 0]
 
 
-class SO3Distribution:
+class SO3Distribution(PoseDistribution):
     """A batch of distributions over SO(3) given by Fourier coefficients.
 
     Args:
@@ -79,10 +73,23 @@ class SO3Distribution:
                 f"(batch entries {listed}); the network's output is not finite: check its input and weights"
             )
         self.coeffs = coeffs
+        self.dtype, self.device = coeffs.dtype, coeffs.device
 
     @property
     def batch_size(self) -> int:
         return self.coeffs.shape[0]
+
+    # ------------------------------------------------------------------ the PoseDistribution interface
+    def unnormalized_log_density(self, rotations: torch.Tensor) -> torch.Tensor:
+        """The signal (logits) at rotations ``(B, K, 3, 3)`` or ``(K, 3, 3)``: ``(B, K)``."""
+        return self.logits(rotations)
+
+    def grid_logsumexp_and_max(self, level: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``logsumexp``, maximum and argmax of the signal over the grid of ``level`` (fast path)."""
+        return self._evaluator(level).logsumexp_and_max(self.coeffs)
+
+    def grid_log_density(self, level: int) -> torch.Tensor:
+        return self.grid_logits(level)
 
     def _evaluator(self, level: int):
         return get_grid_evaluator(self.lmax, check_streamed_level(level), self.coeffs.dtype, self.coeffs.device)

@@ -1,13 +1,16 @@
-"""The LightningModule that trains and evaluates any pose network with an SO(3) Fourier output.
+"""The LightningModule that trains and evaluates any pose network, whatever its method.
 
 Conventions
 -----------
-* The network maps ``images (B, 3, H, W)`` (and ``class_index (B,)`` when it was built with
-  ``num_classes > 0``) to coefficients ``(B, n_so3_coeffs(lmax))`` in the flat Wigner layout; it
-  exposes ``lmax`` (:class:`image2sphere.nn.I2S`, :class:`image2sphere.nn.FourierMLP`).
-* Training loss: cross-entropy of the grid softmax at ``train_grid_level`` against the grid point
-  nearest the label, ``logsumexp_i f(R_i) - f(R_label)``, evaluated with the fast grid evaluator
-  (no ``(B, N)`` tensor).
+* The network (:class:`image2sphere.nn.base.PoseNetwork`) maps ``images (B, 3, H, W)`` (and
+  ``class_index (B,)`` when it was built with ``num_classes > 0``) to its own output; its
+  ``output_distribution(output)`` is a :class:`~image2sphere.distributions.base.PoseDistribution`
+  and ``loss(output, rotation, train_grid_level)`` its training loss per image. Nothing here depends
+  on the method: I2S's loss is the cross-entropy of the grid softmax at ``train_grid_level``, a
+  density family's its negative log likelihood, a regressor's its distance to the label.
+* Every density method is evaluated by the same grid protocol (docs/evaluation.md); a point
+  regressor (``has_density`` false) has its point estimate scored, and its log likelihood and
+  spread are left out of the metrics (not available).
 * Batches are dicts (:mod:`image2sphere.data`): ``image``, ``class_index``, and either
   ``rotation (B, 3, 3)`` (training) or ``rotations (B, M, 3, 3)`` with ``mask (B, M)`` (evaluation),
   optionally ``skipped``: corrupt images dropped from the batch (``dataset.on_corrupt=skip``). They are
@@ -29,23 +32,23 @@ import torch
 from torch import nn
 
 from image2sphere.data.common import stable_seed
+from image2sphere.distributions.base import LOG_UNIFORM_DENSITY
 from image2sphere.metrics import (
     check_targets,
+    fill_padding,
     log_likelihood_pairs,
     min_angular_error_deg,
     spread_deg,
     summarize_pose_metrics,
 )
-from image2sphere.so3.distribution import LOG_UNIFORM_DENSITY, SO3Distribution
+from image2sphere.nn.base import method_of
 from image2sphere.so3.grid import (
     MAX_DENSE_LEVEL,
     MAX_STREAMED_LEVEL,
     check_level,
     so3_grid_size,
     so3_healpix_index_to_matrix,
-    so3_healpix_nearest_index,
 )
-from image2sphere.so3.grid_eval import get_grid_evaluator
 
 __all__ = ["NonFiniteLossError", "PoseEstimationModule"]
 
@@ -85,8 +88,7 @@ class PoseEstimationModule(pl.LightningModule):
         refine_mode: bool = False,
     ):
         super().__init__()
-        if not hasattr(net, "lmax"):
-            raise ValueError(f"model.net must expose its band limit as .lmax; {type(net).__name__} does not")
+        methods = method_of(net)  # ValueError for a network that is not a pose network
         if scheduler_interval not in ("epoch", "step"):
             raise ValueError(f"model.scheduler_interval must be 'epoch' or 'step', got {scheduler_interval!r}")
         self.check_grid_levels(
@@ -101,7 +103,8 @@ class PoseEstimationModule(pl.LightningModule):
         self.optimizer_factory = optimizer
         self.scheduler_factory = scheduler
         self.net = net
-        self.lmax = net.lmax
+        self.lmax = getattr(net, "lmax", None)
+        self.output_distribution, self.method_loss = methods
         self.class_names = list(class_names) if class_names is not None else None
         self.test_metrics: dict[str, float] = {}
         self.skipped_images: dict[str, int] = {}
@@ -129,15 +132,6 @@ class PoseEstimationModule(pl.LightningModule):
             return self.net(images, class_index)
         return self.net(images)
 
-    def _evaluator(self, level: int, coeffs: torch.Tensor):
-        return get_grid_evaluator(self.lmax, level, coeffs.dtype, coeffs.device)
-
-    def _nll(self, coeffs: torch.Tensor, rotation: torch.Tensor, level: int) -> torch.Tensor:
-        """Per-image cross-entropy ``(B,)`` against the grid point nearest ``rotation (B, 3, 3)``."""
-        ev = self._evaluator(level, coeffs)
-        index = so3_healpix_nearest_index(rotation.detach(), level).to(coeffs.device)  # [B]
-        return ev.logsumexp(coeffs) - ev.logits_at(coeffs, index[:, None])[:, 0]
-
     def _count_skipped(self, batch: dict | None, stage: str) -> bool:
         """Count the corrupt images left out of ``batch``; False when nothing is left of it."""
         if batch is None:
@@ -153,40 +147,49 @@ class PoseEstimationModule(pl.LightningModule):
     def training_step(self, batch: dict | None, batch_idx: int) -> torch.Tensor | None:
         if not self._count_skipped(batch, "train"):
             return None
-        coeffs = self(batch["image"], batch.get("class_index"))
-        loss = self._nll(coeffs, batch["rotation"], self.hparams.train_grid_level).mean()
+        output = self(batch["image"], batch.get("class_index"))
+        loss = self.method_loss(output, batch["rotation"], self.hparams.train_grid_level).mean()
         if not torch.isfinite(loss):
             raise NonFiniteLossError(
                 f"training loss is {loss.item()} at epoch {self.current_epoch}, batch {batch_idx} "
                 f"(global step {self.global_step}); the run was stopped before this step could reach a "
                 "checkpoint. Lower model.optimizer.lr or check the data"
             )
-        self.log("train/loss", loss, prog_bar=True, on_step=True, on_epoch=True, batch_size=len(coeffs))
+        self.log("train/loss", loss, prog_bar=True, on_step=True, on_epoch=True, batch_size=len(batch["image"]))
         return loss
 
     # ------------------------------------------------------------------ evaluation
     def _evaluate(self, batch: dict, level: int, spread_level: int | None) -> dict[str, torch.Tensor]:
-        coeffs = self(batch["image"], batch.get("class_index"))
+        output = self(batch["image"], batch.get("class_index"))
+        dist = self.output_distribution(output)
         targets, mask = batch["rotations"], batch["mask"]
-        mask = check_targets(targets, mask, len(coeffs))
-        ev = self._evaluator(level, coeffs)
-        lse, _, argmax = ev.logsumexp_and_max(coeffs)  # [B], [B], [B]
-        dist = SO3Distribution(coeffs, self.lmax)
+        mask = check_targets(targets, mask, dist.batch_size)
+        out = {
+            "class_index": batch["class_index"],
+            "index": batch.get("index", torch.full_like(batch["class_index"], -1)),
+        }
+        if not dist.has_density:  # a point regressor: its estimate, and the loss at the first target
+            out["error_deg"] = min_angular_error_deg(dist.mode().to(targets.dtype), targets, mask)
+            out["loss"] = self.method_loss(output, targets[:, 0], level)
+            return out
+        lse, _, argmax = dist.grid_logsumexp_and_max(level)  # [B], [B], [B]
         if self.hparams.refine_mode:
             pred = dist.mode(level, refine=True).to(targets.dtype)
         else:
             pred = so3_healpix_index_to_matrix(argmax, level, dtype=targets.dtype).to(targets.device)
         ll = log_likelihood_pairs(dist, targets, mask, level, log_normalizer=lse)  # [B, M], NaN on padding
         log_n = math.log(math.prod(so3_grid_size(level)))
-        out = {
-            "class_index": batch["class_index"],
-            "index": batch.get("index", torch.full_like(batch["class_index"], -1)),
-            "error_deg": min_angular_error_deg(pred, targets, mask),
-            "ll_sum": ll.masked_fill(~mask, 0.0).sum(1),
-            "ll_count": mask.sum(1),
-            # -log p at the grid point nearest the rendering rotation (the loss, at this level)
-            "nll_first": log_n + LOG_UNIFORM_DENSITY - ll[:, 0],
-        }
+        out.update(
+            error_deg=min_angular_error_deg(pred, targets, mask),
+            ll_sum=ll.masked_fill(~mask, 0.0).sum(1),
+            ll_count=mask.sum(1),
+            # -log p at the grid point nearest the rendering rotation (I2S's loss, at this level)
+            loss=log_n + LOG_UNIFORM_DENSITY - ll[:, 0],
+        )
+        if dist.has_exact_density:  # the family's continuous density, besides the grid protocol's
+            with torch.no_grad():
+                exact = dist.exact_log_density(fill_padding(targets, mask).to(dist.dtype))  # [B, M]
+            out["ll_exact_sum"] = exact.masked_fill(~mask, 0.0).sum(1)
         if spread_level is not None:
             out["spread"] = spread_deg(dist, targets, mask, spread_level)
         return out
@@ -204,11 +207,12 @@ class PoseEstimationModule(pl.LightningModule):
             records["class_index"],
             names,
             error_deg=records["error_deg"],
-            ll_sum=records["ll_sum"],
-            ll_count=records["ll_count"],
+            ll_sum=records.get("ll_sum"),
+            ll_count=records.get("ll_count"),
             spread=records.get("spread"),
+            ll_exact_sum=records.get("ll_exact_sum"),
         )
-        metrics["loss"] = float(records["nll_first"].double().mean())
+        metrics["loss"] = float(records["loss"].double().mean())
         return metrics
 
     def _gather(self, records: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -236,16 +240,8 @@ class PoseEstimationModule(pl.LightningModule):
         if not self._records:
             return
         m = self._summarize()
-        self.log_dict(
-            {
-                "val/loss": m["loss"],
-                "val/log_likelihood": m["log_likelihood"],
-                "val/median_error_deg": m["median_error_deg"],
-                "val/acc15": m["acc15"],
-            },
-            prog_bar=True,
-            sync_dist=False,
-        )
+        keys = ("loss", "log_likelihood", "median_error_deg", "acc15")  # log_likelihood: density methods only
+        self.log_dict({f"val/{k}": m[k] for k in keys if k in m}, prog_bar=True, sync_dist=False)
 
     def test_step(self, batch: dict | None, batch_idx: int) -> None:
         if self._count_skipped(batch, "test"):

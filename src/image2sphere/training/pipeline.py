@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import os
 import signal
 import time
@@ -76,16 +75,17 @@ def is_slurm_requeue(output_dir: Path) -> bool:
 
 
 def format_metrics_table(metrics: dict[str, float], class_names: list[str]) -> str:
-    """Per-class rows and the class mean as a fixed-width text table."""
-    columns = [c for c in TABLE_COLUMNS if c[0] in metrics]
+    """Per-class rows and the class mean as a fixed-width text table. Every column is shown; a metric
+    the method does not have (a point regressor's log likelihood and spread) reads ``n/a``."""
+    columns = TABLE_COLUMNS
     width = max([len(n) for n in class_names] + [len("mean")])
     lines = [" ".join([f"{'class':<{width}}"] + [f"{title:>{len(fmt.format(0.0))}}" for _, title, fmt in columns])]
     for name in [*class_names, "mean"]:
         key = "" if name == "mean" else f"/{name}"
         cells = []
         for metric, _, fmt in columns:
-            value = metrics.get(metric + key, math.nan)
-            cells.append(fmt.format(value))
+            value = metrics.get(metric + key)
+            cells.append(fmt.format(value) if value is not None else f"{'n/a':>{len(fmt.format(0.0))}}")
         if any(metric + key in metrics for metric, _, _ in columns):
             lines.append(" ".join([f"{name:<{width}}", *cells]))
     return "\n".join(lines)

@@ -1,0 +1,76 @@
+"""Implicit distributions over SO(3): an unnormalised log density given by a network (Implicit-PDF).
+
+Conventions (docs/conventions.md#densities)
+-------------------------------------------
+* Rotations ``(..., 3, 3)``, ``x_camera = R @ x_object``; densities w.r.t. the Haar measure of
+  volume ``pi^2`` (uniform: ``-log(pi^2)``).
+* The family is ``log p(R | x) = f(x, R) - log Z(x)`` with ``f`` a network's scalar output
+  (Murphy et al. 2021, "Implicit-PDF"). ``Z`` has no closed form: the density is the grid
+  protocol's (:class:`~image2sphere.distributions.base.PoseDistribution`), the softmax of ``f``
+  over the HEALPix grid of a level, ``p_nearest * N / pi^2``.
+* The network is held as a callable ``score(features (B, F), rotations (K, 3, 3) or (B, K, 3, 3))
+  -> (B, K)`` and evaluated lazily, in sub-chunks of at most :data:`MAX_ACTIVATION_ELEMENTS`
+  hidden values (``B x k x width``), so a grid chunk of the base class (``CHUNK_POINTS`` rotations)
+  never builds a ``(B, CHUNK_POINTS, width)`` activation.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from image2sphere.distributions.base import PoseDistribution
+
+__all__ = ["MAX_ACTIVATION_ELEMENTS", "ImplicitDistribution"]
+
+# hidden values (B x k x width) per call of the scoring network: 64 MiB of float32 per activation
+MAX_ACTIVATION_ELEMENTS = 1 << 24
+
+ScoreFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+class ImplicitDistribution(PoseDistribution):
+    """A batch of ``B`` distributions ``p(R) ~ exp(score(features_b, R))``.
+
+    Args:
+        features: per-image features ``(B, F)`` (the network's output for the batch).
+        score: ``score(features (B, F), rotations (k, 3, 3) or (B, k, 3, 3)) -> (B, k)``, the
+            unnormalised log density (e.g. :meth:`image2sphere.nn.IPDF.score`). Differentiable
+            w.r.t. the features and the network's parameters.
+        width: the widest hidden layer of ``score``: sets the rotations per call,
+            ``max(1, MAX_ACTIVATION_ELEMENTS // (B * width))``.
+    """
+
+    def __init__(self, features: torch.Tensor, score: ScoreFn, width: int = 256):
+        if not isinstance(features, torch.Tensor) or features.ndim != 2 or features.shape[0] == 0:
+            shape = tuple(features.shape) if isinstance(features, torch.Tensor) else type(features).__name__
+            raise ValueError(f"features must have shape (B, F) with B >= 1, got {shape}")
+        if not callable(score):
+            raise ValueError(f"score must be callable, got {type(score).__name__}")
+        if isinstance(width, bool) or not isinstance(width, int) or width < 1:
+            raise ValueError(f"width must be a positive integer, got {width!r}")
+        self.features = features
+        self.score = score
+        self.width = width
+        self.batch_size, self.dtype, self.device = features.shape[0], features.dtype, features.device
+        self.points_per_call = max(1, MAX_ACTIVATION_ELEMENTS // (self.batch_size * width))
+
+    def unnormalized_log_density(self, rotations: torch.Tensor) -> torch.Tensor:
+        """``score`` at ``(K, 3, 3)`` (shared) or ``(B, K, 3, 3)`` rotations: ``(B, K)``, evaluated
+        :attr:`points_per_call` rotations at a time."""
+        if not isinstance(rotations, torch.Tensor) or rotations.ndim not in (3, 4) or rotations.shape[-2:] != (3, 3):
+            shape = tuple(rotations.shape) if isinstance(rotations, torch.Tensor) else type(rotations).__name__
+            raise ValueError(f"rotations must have shape (K, 3, 3) or (B, K, 3, 3), got {shape}")
+        if rotations.ndim == 4 and rotations.shape[0] != self.batch_size:
+            raise ValueError(
+                f"rotations of shape (B, K, 3, 3) must have B = batch size {self.batch_size}, "
+                f"got {tuple(rotations.shape)}"
+            )
+        rotations = rotations.to(device=self.device, dtype=self.dtype)
+        n = rotations.shape[-3]
+        if n == 0:
+            return self.features.new_zeros(self.batch_size, 0)
+        step = self.points_per_call
+        parts = [self.score(self.features, rotations[..., s : s + step, :, :]) for s in range(0, n, step)]
+        return parts[0] if len(parts) == 1 else torch.cat(parts, dim=1)  # [B, K]

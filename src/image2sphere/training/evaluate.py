@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import time
 from pathlib import Path
 
@@ -30,13 +29,17 @@ log = logging.getLogger(__name__)
 
 
 def format_metrics_markdown(metrics: dict[str, float], class_names: list[str]) -> str:
-    """Per-class rows and the class mean as a markdown table (the columns of the printed table)."""
-    columns = [c for c in TABLE_COLUMNS if c[0] in metrics]
-    lines = ["| class | " + " | ".join(title for _, title, _ in columns) + " |", "|---" * (len(columns) + 1) + "|"]
+    """Per-class rows and the class mean as a markdown table: the columns of the printed table, a
+    metric the method does not have (a point regressor's log likelihood and spread) reading ``n/a``."""
+    lines = [
+        "| class | " + " | ".join(title for _, title, _ in TABLE_COLUMNS) + " |",
+        "|---" * (len(TABLE_COLUMNS) + 1) + "|",
+    ]
     for name in [*class_names, "mean"]:
         key = "" if name == "mean" else f"/{name}"
-        if any(metric + key in metrics for metric, _, _ in columns):
-            cells = [fmt.format(metrics.get(metric + key, math.nan)).strip() for metric, _, fmt in columns]
+        if any(metric + key in metrics for metric, _, _ in TABLE_COLUMNS):
+            cells = [fmt.format(metrics[metric + key]).strip() if metric + key in metrics else "n/a"
+                     for metric, _, fmt in TABLE_COLUMNS]  # fmt: skip
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

@@ -11,6 +11,7 @@ from image2sphere.so3.pose_distribution import (
 )
 
 __all__ = [
+    "check_num_components",
     "CHUNK_POINTS",
     "LOG_UNIFORM_DENSITY",
     "DensityNotAvailable",
@@ -18,3 +19,10 @@ __all__ = [
     "PoseDistribution",
     "check_threshold",
 ]
+
+
+def check_num_components(num_components) -> int:
+    """The number of components of a mixture family: a positive integer, else ``ValueError``."""
+    if isinstance(num_components, bool) or not isinstance(num_components, int) or num_components < 1:
+        raise ValueError(f"num_components must be a positive integer, got {num_components!r}")
+    return num_components

@@ -46,7 +46,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from image2sphere.distributions.base import PoseDistribution
+from image2sphere.distributions.base import PoseDistribution, check_num_components
 from image2sphere.so3.rotations import check_rotation_matrix, quaternion_to_matrix
 
 __all__ = [
@@ -171,7 +171,7 @@ def bingham_params_from_output(x: torch.Tensor, num_components: int = 1):
 
 
 def _params(x: torch.Tensor, num_components: int):
-    C = _check_components(num_components)
+    C = check_num_components(num_components)
     if not isinstance(x, torch.Tensor) or x.ndim != 2 or x.shape[1] != C * PARAMS_PER_COMPONENT:
         raise ValueError(
             f"Bingham output must have shape (B, {C * PARAMS_PER_COMPONENT}) for {C} component(s) "
@@ -184,12 +184,6 @@ def _params(x: torch.Tensor, num_components: int):
     z = -torch.cumsum(torch.exp(x[..., 4:7].clamp(*LOGIT_RANGE)), dim=-1).flip(-1)  # [B, C, 3] ascending
     log_w = torch.log_softmax(x[..., 7], dim=-1)  # [B, C]
     return M, z, log_w
-
-
-def _check_components(num_components) -> int:
-    if isinstance(num_components, bool) or not isinstance(num_components, int) or num_components < 1:
-        raise ValueError(f"num_components must be a positive integer, got {num_components!r}")
-    return num_components
 
 
 # ---------------------------------------------------------------------------------- distribution

@@ -49,7 +49,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from image2sphere.distributions.base import PoseDistribution
+from image2sphere.distributions.base import PoseDistribution, check_num_components
 from image2sphere.so3.rotations import check_rotation_matrix
 
 __all__ = [
@@ -132,7 +132,7 @@ def von_mises_params_from_output(x: torch.Tensor, num_components: int = 1):
 
 
 def _params(x: torch.Tensor, num_components: int):
-    C = _check_components(num_components)
+    C = check_num_components(num_components)
     if not isinstance(x, torch.Tensor) or x.ndim != 2 or x.shape[1] != C * PARAMS_PER_COMPONENT:
         raise ValueError(
             f"von Mises output must have shape (B, {C * PARAMS_PER_COMPONENT}) for {C} component(s) "
@@ -143,12 +143,6 @@ def _params(x: torch.Tensor, num_components: int):
     mu = mu / torch.linalg.vector_norm(mu, dim=-1, keepdim=True).clamp_min(torch.finfo(x.dtype).tiny ** 0.5)
     kappa = F.softplus(x[..., 6:9]) + MIN_CONCENTRATION  # [B, C, 3]
     return mu, kappa, torch.log_softmax(x[..., 9], dim=-1)
-
-
-def _check_components(num_components) -> int:
-    if isinstance(num_components, bool) or not isinstance(num_components, int) or num_components < 1:
-        raise ValueError(f"num_components must be a positive integer, got {num_components!r}")
-    return num_components
 
 
 # ---------------------------------------------------------------------------------- sampling

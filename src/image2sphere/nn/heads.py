@@ -24,6 +24,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from image2sphere.distributions.base import check_num_components
 from image2sphere.distributions.bingham import Bingham, bingham_nll
 from image2sphere.distributions.matrix_fisher import MatrixFisher, matrix_fisher_nll
 from image2sphere.distributions.rotation_laplace import RotationLaplace, rotation_laplace_nll
@@ -70,12 +71,6 @@ class ParametricHead(PoseNetwork):
         return self.mlp(self.pooled_features(images, class_index))  # [B, C] -> [B, out]
 
 
-def _check_components(num_components) -> int:
-    if isinstance(num_components, bool) or not isinstance(num_components, int) or num_components < 1:
-        raise ValueError(f"num_components must be a positive integer, got {num_components!r}")
-    return num_components
-
-
 class MatrixFisherNet(ParametricHead):
     """Mohlin et al. 2020, "Probabilistic orientation estimation with matrix Fisher distributions"
     (NeurIPS): ``p(R) prop. to exp(tr(F^T R))``, trained by its negative log likelihood."""
@@ -113,7 +108,7 @@ class BinghamNet(ParametricHead):
 
     def __init__(self, encoder: nn.Module, image_size: int | tuple[int, int] = 224, hidden: int = 512,
                  num_components: int = 1, num_classes: int = 0):  # fmt: skip
-        super().__init__(encoder, image_size, 8 * _check_components(num_components), hidden, num_classes)
+        super().__init__(encoder, image_size, 8 * check_num_components(num_components), hidden, num_classes)
         self.num_components = num_components
 
     def output_distribution(self, output: torch.Tensor) -> Bingham:
@@ -131,7 +126,7 @@ class VonMisesNet(ParametricHead):
 
     def __init__(self, encoder: nn.Module, image_size: int | tuple[int, int] = 224, hidden: int = 512,
                  num_components: int = 1, num_classes: int = 0):  # fmt: skip
-        super().__init__(encoder, image_size, 10 * _check_components(num_components), hidden, num_classes)
+        super().__init__(encoder, image_size, 10 * check_num_components(num_components), hidden, num_classes)
         self.num_components = num_components
 
     def output_distribution(self, output: torch.Tensor) -> VonMisesEuler:

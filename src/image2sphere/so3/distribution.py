@@ -22,7 +22,6 @@ from image2sphere.so3.grid import (
     MAX_DENSE_LEVEL,
     check_level,
     so3_grid_size,
-    so3_healpix_grid,
     so3_healpix_index_to_matrix,
     so3_healpix_nearest_index,
 )
@@ -304,42 +303,12 @@ class SO3Distribution(PoseDistribution):
         distribution reaches it, that distribution has no modes: its entry is ``(rotations (0, 3, 3),
         mass (0,))`` (compare with :meth:`max_prob`). ``mass_level`` is at most ``MAX_DENSE_LEVEL``.
         """
-        level = check_streamed_level(level)
-        coarse = min(level, check_level(mass_level, "mass_level"))
-        check_level(coarse, "mass_level", max_level=MAX_DENSE_LEVEL, purpose="the probability mass of modes",
-                    bytes_per_point=40)  # fmt: skip
-        if isinstance(k, bool) or not isinstance(k, int) or k < 1:
-            raise ValueError(f"k must be a positive integer, got {k!r}")
-        if isinstance(radius_deg, bool) or not isinstance(radius_deg, numbers.Real) or not 0 < radius_deg < 180:
-            raise ValueError(f"radius_deg must be in (0, 180), got {radius_deg!r}")
-        threshold = self.default_threshold(level) if threshold is None else check_threshold(threshold)
-        min_trace = 1 + 2 * math.cos(math.radians(radius_deg))  # angle <= r  <=>  trace(Ri^T Rj) >= this
-        grid = so3_healpix_grid(coarse, dtype=self.coeffs.dtype).reshape(-1, 9).to(self.coeffs.device)  # [N, 9]
-        out = []
-        for b, (index, _) in enumerate(self.points_above(threshold, level)):
-            flat = so3_healpix_index_to_matrix(index, level, dtype=self.coeffs.dtype).reshape(-1, 9)  # [K, 9]
-            free = torch.ones(len(flat), dtype=torch.bool, device=flat.device)
-            chosen = []
-            while free.any() and len(chosen) < k:
-                i = int(torch.nonzero(free)[0])  # the most probable free candidate (sorted by prob)
-                free &= flat @ flat[i] < min_trace
-                chosen.append(i)
-            if not chosen:  # no grid point reaches the threshold: no modes
-                out.append((flat.new_empty(0, 3, 3), flat.new_empty(0)))
-                continue
-            centres = flat[chosen].reshape(-1, 3, 3)
-            with torch.no_grad():
-                p = torch.softmax(self._evaluator(coarse).logits(self.coeffs[b : b + 1].detach())[0], -1)  # [N]
-                best, owner = (grid @ flat[chosen].T).max(dim=1)  # nearest mode of every grid point
-                within = best >= min_trace
-                mass = torch.zeros(len(chosen), dtype=p.dtype, device=p.device).index_add_(0, owner[within], p[within])
-            if refine and len(chosen):
-                sub = SO3Distribution(self.coeffs[b : b + 1].expand(len(centres), -1), self.lmax)
-                spacing = 2 * math.pi / so3_grid_size(level)[1]
-                centres = sub._refine(centres, 100, spacing / 10)
-            order = torch.argsort(mass, descending=True)
-            out.append((centres[order], mass[order]))
-        return out
+        return super().modes(level, k, radius_deg, threshold, refine, mass_level)
+
+    def _refine_modes(self, b: int, centres: torch.Tensor, level: int) -> torch.Tensor:
+        sub = SO3Distribution(self.coeffs[b : b + 1].expand(len(centres), -1), self.lmax)
+        spacing = 2 * math.pi / so3_grid_size(level)[1]
+        return sub._refine(centres, 100, spacing / 10)
 
     def sample(
         self, n: int, level: int, generator: torch.Generator | None = None, return_index: bool = False

@@ -300,7 +300,8 @@ class PoseDistribution:
         """Up to ``k`` separate modes per distribution and the probability mass within ``radius_deg``
         of each (greedy non-maximum suppression on the grid of ``level``; mass on the grid of
         ``min(level, mass_level)``, each point counted for its nearest mode), in decreasing mass.
-        ``refine`` is accepted for the interface; grid modes are returned as they are."""
+        With ``refine`` each mode is moved off the grid by :meth:`_refine_modes` (the families that
+        can; the others return the grid modes)."""
         level = check_streamed_level(level)
         coarse = min(level, check_level(mass_level, "mass_level"))
         check_level(coarse, "mass_level", max_level=MAX_DENSE_LEVEL, purpose="the probability mass of modes",
@@ -330,9 +331,16 @@ class PoseDistribution:
             within = best >= min_trace
             mass = torch.zeros(len(chosen), dtype=probs.dtype, device=self.device)
             mass.index_add_(0, owner[within], probs[b][within])
+            centres = flat[chosen].reshape(-1, 3, 3)
+            if refine:
+                centres = self._refine_modes(b, centres, level)
             order = torch.argsort(mass, descending=True)
-            out.append((flat[chosen].reshape(-1, 3, 3)[order], mass[order]))
+            out.append((centres[order], mass[order]))
         return out
+
+    def _refine_modes(self, b: int, centres: torch.Tensor, level: int) -> torch.Tensor:
+        """Grid modes ``(k, 3, 3)`` of distribution ``b`` moved off the grid; here: unchanged."""
+        return centres
 
 
 class PointEstimate(PoseDistribution):

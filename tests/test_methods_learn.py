@@ -7,6 +7,8 @@ move would leave the loss where it started.
 
 from __future__ import annotations
 
+import statistics
+
 import pytest
 import torch
 from hydra.utils import instantiate
@@ -50,7 +52,9 @@ def test_training_loss_falls_when_overfitting_a_few_images(tmp_path, model, imag
         loss.backward()
         optimizer.step()
         losses.append(float(loss.detach()))
-    first, last = sum(losses[:3]) / 3, sum(losses[-3:]) / 3
+    # the median of the last steps: the density families' losses can spike for a step when a sharp
+    # distribution is briefly wrong (Bingham with 2 threads: ..., -1.96, -3.24, 5.67)
+    first, last = sum(losses[:3]) / 3, statistics.median(losses[-8:])
     assert all(map(torch.isfinite, map(torch.tensor, losses))), losses
     # the loss falls by a clear margin: half a nat for the log likelihoods, a quarter of the start for
     # the regressors' distances (whose scale is the squared Frobenius distance, at most 8)

@@ -31,6 +31,9 @@ from test_train_entry import REPO, SMOKE, TINY, published_fixtures  # noqa: F401
 FAMILIES = {
     "regression_6d": (False, False),
     "regression_9d": (False, False),
+    "spherical_regression": (False, False),
+    "bin_delta": (False, False),
+    "viewpoint_bins": (True, True),
     "matrix_fisher": (True, True),
     "rotation_laplace": (True, True),
     "bingham": (True, True),

@@ -2,8 +2,9 @@
 
 from image2sphere.nn.activation import SO3ReLU
 from image2sphere.nn.base import PoseNetwork
+from image2sphere.nn.classification_regression import BinDeltaRegression, SphericalRegression
 from image2sphere.nn.encoder import RESNET_DEPTHS, ResNetEncoder
-from image2sphere.nn.heads import BinghamNet, MatrixFisherNet, RotationLaplaceNet, VonMisesNet
+from image2sphere.nn.heads import BinghamNet, EulerBinsNet, MatrixFisherNet, RotationLaplaceNet, VonMisesNet
 from image2sphere.nn.i2s import I2S, FourierMLP
 from image2sphere.nn.ipdf import IPDF
 from image2sphere.nn.projector import HarmonicS2Projector, SpatialS2Projector
@@ -12,7 +13,9 @@ from image2sphere.nn.s2_conv import S2Conv
 from image2sphere.nn.so3_conv import SO3Conv
 
 __all__ = [
+    "BinDeltaRegression",
     "BinghamNet",
+    "EulerBinsNet",
     "MatrixFisherNet",
     "RotationLaplaceNet",
     "VonMisesNet",
@@ -20,6 +23,7 @@ __all__ = [
     "IPDF",
     "PoseNetwork",
     "RotationRegression",
+    "SphericalRegression",
     "RESNET_DEPTHS",
     "FourierMLP",
     "HarmonicS2Projector",

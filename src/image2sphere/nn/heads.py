@@ -13,6 +13,7 @@ network                           family (:mod:`image2sphere.distributions`)   o
                                   Deng et al. 2022 for ``num_components > 1``)
 :class:`VonMisesNet`              von Mises mixture on Euler angles            10 per component
                                   (Prokudin et al. 2018)
+:class:`EulerBinsNet`             Euler-angle bins (Tulsiani & Malik 2015)     3 x ``num_bins``
 ================================  ===========================================  =====================
 
 Densities are w.r.t. the Haar measure of volume ``pi^2``; every family is also scored by the grid
@@ -26,12 +27,13 @@ from torch import nn
 
 from image2sphere.distributions.base import check_num_components
 from image2sphere.distributions.bingham import Bingham, bingham_nll
+from image2sphere.distributions.euler_bins import EulerBins, check_num_bins, euler_bins_nll
 from image2sphere.distributions.matrix_fisher import MatrixFisher, matrix_fisher_nll
 from image2sphere.distributions.rotation_laplace import RotationLaplace, rotation_laplace_nll
 from image2sphere.distributions.von_mises import VonMisesEuler, von_mises_nll
 from image2sphere.nn.base import PoseNetwork
 
-__all__ = ["BinghamNet", "MatrixFisherNet", "ParametricHead", "RotationLaplaceNet", "VonMisesNet"]
+__all__ = ["BinghamNet", "EulerBinsNet", "MatrixFisherNet", "ParametricHead", "RotationLaplaceNet", "VonMisesNet"]
 
 
 class ParametricHead(PoseNetwork):
@@ -134,3 +136,21 @@ class VonMisesNet(ParametricHead):
 
     def loss(self, output: torch.Tensor, rotation: torch.Tensor, grid_level: int) -> torch.Tensor:
         return von_mises_nll(output, rotation, self.num_components)
+
+
+class EulerBinsNet(ParametricHead):
+    """Tulsiani & Malik 2015, "Viewpoints and keypoints" (CVPR): azimuth, elevation and tilt each
+    classified into ``num_bins`` bins (the paper: 21), as a piecewise-constant density on SO(3)
+    (:mod:`image2sphere.distributions.euler_bins`), trained by the three cross-entropies. Output
+    layout: ``(B, 3 * num_bins)``, the azimuth, elevation and tilt logits in turn."""
+
+    def __init__(self, encoder: nn.Module, image_size: int | tuple[int, int] = 224, hidden: int = 512,
+                 num_bins: int = 21, num_classes: int = 0):  # fmt: skip
+        super().__init__(encoder, image_size, 3 * check_num_bins(num_bins), hidden, num_classes)
+        self.num_bins = num_bins
+
+    def output_distribution(self, output: torch.Tensor) -> EulerBins:
+        return EulerBins.from_output(output, self.num_bins)
+
+    def loss(self, output: torch.Tensor, rotation: torch.Tensor, grid_level: int) -> torch.Tensor:
+        return euler_bins_nll(output, rotation, self.num_bins)

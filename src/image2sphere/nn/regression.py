@@ -27,7 +27,7 @@ from image2sphere.distributions.base import PointEstimate
 from image2sphere.nn.base import PoseNetwork
 from image2sphere.so3.rotations import geodesic_distance
 
-__all__ = ["RotationRegression", "rotation_6d_to_matrix", "special_procrustes"]
+__all__ = ["PerClassLinear", "RotationRegression", "rotation_6d_to_matrix", "special_procrustes"]
 
 REPRESENTATIONS = {"6d": 6, "9d": 9}
 LOSSES = ("frobenius", "geodesic")
@@ -84,6 +84,30 @@ def special_procrustes(M: torch.Tensor) -> torch.Tensor:
     return _SpecialProcrustes.apply(M)
 
 
+class PerClassLinear(nn.Linear):
+    """The last layer of the regression baselines: ``out_features`` outputs, or with ``num_classes > 0``
+    one set of ``out_features`` per class, of which each image gets its own class's (the papers'
+    class-specific output layers instead of a class one-hot input).
+
+    Args:
+        in_features: inputs per image.
+        out_features: outputs per image.
+        num_classes: 0: one layer for all images; > 0: one per class.
+    """
+
+    def __init__(self, in_features: int, out_features: int, num_classes: int = 0):
+        super().__init__(in_features, out_features * max(1, num_classes))
+        self.out_per_class, self.num_classes = out_features, num_classes
+
+    def forward(self, x: torch.Tensor, onehot: torch.Tensor | None = None) -> torch.Tensor:
+        """``x [B, in]`` (and the class one-hot ``[B, nc]`` when ``num_classes > 0``) -> ``[B, out]``."""
+        y = super().forward(x)  # [B, out * max(1, nc)]
+        if not self.num_classes:
+            return y
+        y = y.reshape(len(y), self.num_classes, self.out_per_class)  # [B, nc, out]
+        return torch.einsum("bco,bc->bo", y, onehot.to(y.dtype))  # [B, out]
+
+
 class RotationRegression(PoseNetwork):
     """A point regressor: pooled encoder features -> two linear layers -> a rotation.
 
@@ -117,14 +141,13 @@ class RotationRegression(PoseNetwork):
         self.representation, self.loss_kind = representation, loss
         self.out_dim = REPRESENTATIONS[representation]
         self.hidden = nn.Sequential(nn.Linear(self.feature_channels, hidden), nn.ReLU())
-        self.last = nn.Linear(hidden, self.out_dim * max(1, num_classes))
+        self.last = PerClassLinear(hidden, self.out_dim, num_classes)
 
     def forward(self, images: torch.Tensor, class_index: torch.Tensor | None = None) -> torch.Tensor:
         """Images ``[B, 3, H, W]`` -> rotations ``[B, 3, 3]``."""
-        x = self.last(self.hidden(self.encoder(images).mean(dim=(-1, -2))))  # [B, d * max(1, nc)]
-        if self.num_classes:
-            onehot = self.class_onehot(class_index, len(x)).to(x.dtype)  # [B, nc]
-            x = torch.einsum("bcd,bc->bd", x.reshape(len(x), self.num_classes, self.out_dim), onehot)  # [B, d]
+        pooled = self.encoder(images).mean(dim=(-1, -2))  # [B, C]
+        onehot = self.class_onehot(class_index, len(pooled)) if self.num_classes else None  # [B, nc]
+        x = self.last(self.hidden(pooled), onehot)  # [B, d]
         if self.representation == "6d":
             return rotation_6d_to_matrix(x)
         return special_procrustes(x.reshape(-1, 3, 3))

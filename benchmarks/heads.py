@@ -13,8 +13,8 @@ For each method, in one run (I2S is always measured: it is the reference of ever
    * evaluation per image at grid level ``--level``: ``output_distribution(output)
      .grid_logsumexp_and_max(level)`` for ``--eval-batch`` images (the head's output computed
      beforehand, in eval mode, without gradients), divided by the number of images. The point
-     regressors (regression_6d, regression_9d, spherical_regression, bin_delta) have no density and
-     no grid evaluation: their time is that of ``output_distribution(output).mode()``;
+     regressors (regression_6d, regression_9d, spherical_regression, bin_delta, i2s_icosahedral) have
+     no density and no grid evaluation: their time is that of ``output_distribution(output).mode()``;
    * parameters of the head (every parameter but the encoder's).
 
 2. **Whole network (encoder included).** Training step per batch as above, with the real encoder
@@ -69,6 +69,7 @@ METHODS = (
     "viewpoint_bins",
     "spherical_regression",
     "bin_delta",
+    "i2s_icosahedral",
 )
 REFERENCE = "i2s"
 CONF = Path(__file__).resolve().parents[1] / "conf"

@@ -189,9 +189,10 @@ def test_docs_resolution_table_is_what_the_configs_compose(tmp_path):
         assert (size, batch) == (f"{cfg.dataset.image_size} px", str(cfg.dataset.batch_size)), dataset
 
 
-FOURIER_MODELS = {"i2s", "i2s_harmonic_projector", "i2s_spatial_filter", "i2s_no_so3_conv", "i2s_two_so3_conv",
+FOURIER_MODELS = {"i2s", "i2s_harmonic_projector", "i2s_spatial_filter", "i2s_harmonic_projector_spatial_filter",
+                  "i2s_no_so3_conv", "i2s_two_so3_conv",
                   "fourier_mlp"}  # fmt: skip
-POINT_REGRESSORS = {"regression_6d", "regression_9d", "spherical_regression", "bin_delta"}
+POINT_REGRESSORS = {"regression_6d", "regression_9d", "spherical_regression", "bin_delta", "i2s_icosahedral"}
 
 
 @pytest.mark.parametrize("model", options("model"))

@@ -6,6 +6,7 @@ from image2sphere.nn.classification_regression import BinDeltaRegression, Spheri
 from image2sphere.nn.encoder import RESNET_DEPTHS, ResNetEncoder
 from image2sphere.nn.heads import BinghamNet, EulerBinsNet, MatrixFisherNet, RotationLaplaceNet, VonMisesNet
 from image2sphere.nn.i2s import I2S, FourierMLP
+from image2sphere.nn.icosahedral import IcosahedralI2S
 from image2sphere.nn.ipdf import IPDF
 from image2sphere.nn.projector import HarmonicS2Projector, SpatialS2Projector
 from image2sphere.nn.regression import RotationRegression
@@ -20,6 +21,7 @@ __all__ = [
     "RotationLaplaceNet",
     "VonMisesNet",
     "I2S",
+    "IcosahedralI2S",
     "IPDF",
     "PoseNetwork",
     "RotationRegression",

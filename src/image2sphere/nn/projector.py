@@ -22,7 +22,7 @@ from torch import nn
 from image2sphere.so3.grid import s2_healpix_grid
 from image2sphere.so3.wigner import check_lmax, n_s2_coeffs
 
-__all__ = ["HarmonicS2Projector", "SpatialS2Projector"]
+__all__ = ["HarmonicS2Projector", "SpatialS2Projector", "orthographic_interpolation"]
 
 
 def _pair(size) -> tuple[int, int]:
@@ -30,6 +30,59 @@ def _pair(size) -> tuple[int, int]:
     if h < 1 or w < 1:
         raise ValueError(f"feature map size must be positive, got {size!r}")
     return int(h), int(w)
+
+
+def check_orthographic_args(coverage: float, sigma: float, taper_beta: float, max_beta: float) -> None:
+    """``ValueError`` unless ``0 < coverage <= 1``, ``sigma > 0`` and ``0 < taper_beta <= max_beta <= pi``."""
+    if not 0 < coverage <= 1:
+        raise ValueError(f"coverage must be in (0, 1], got {coverage!r}")
+    if sigma <= 0:
+        raise ValueError(f"sigma must be positive, got {sigma!r}")
+    if not 0 < taper_beta <= max_beta <= math.pi:
+        raise ValueError(f"need 0 < taper_beta <= max_beta <= pi, got {taper_beta!r}, {max_beta!r}")
+
+
+def orthographic_interpolation(
+    alpha: torch.Tensor,
+    beta: torch.Tensor,
+    feature_size: int | tuple[int, int],
+    *,
+    coverage: float = 0.9,
+    sigma: float = 0.2,
+    max_beta: float = math.pi / 2,
+    taper_beta: float = math.radians(75),
+    radius: float | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Read-out weights of sphere points ``(alpha, beta)`` ``[K]`` from an ``H x W`` feature map.
+
+    Point ``u`` lands at ``P(u) = (u_x, u_z) * coverage / radius`` on the map's ``[-1, 1]^2`` (``radius``
+    defaults to the largest ``|P(u)|`` of the points, so the outermost one lands at ``coverage``); its
+    weights are Gaussian (``sigma``) over the feature cells whose centres lie inside the image's
+    inscribed ellipse, normalised to sum to one, times the taper (1 up to ``taper_beta``, linearly
+    down to 0 at ``max_beta``; points beyond ``max_beta`` get weight 0).
+
+    Returns ``weight [H, W, K]`` and ``inside [H, W]`` (1 for the cells that are read), float64.
+    """
+    h, w = _pair(feature_size)
+    check_orthographic_args(coverage, sigma, taper_beta, max_beta)
+    alpha, beta = torch.as_tensor(alpha, dtype=torch.float64), torch.as_tensor(beta, dtype=torch.float64)
+    xyz = o3.angles_to_xyz(alpha, beta)  # [K, 3]
+    planar = xyz[:, [0, 2]]  # (u_x, u_z): image (horizontal, vertical)
+    planar = coverage * planar / (planar.norm(dim=1).max() if radius is None else radius)
+    rows = torch.linspace(-1, 1, h, dtype=torch.float64) if h > 1 else torch.zeros(1, dtype=torch.float64)
+    cols = torch.linspace(-1, 1, w, dtype=torch.float64) if w > 1 else torch.zeros(1, dtype=torch.float64)
+    py, px = torch.meshgrid(rows, cols, indexing="ij")  # [H, W]
+    # the image reaches half a cell beyond the outermost centres: its inscribed ellipse has these semi-axes
+    rx, ry = 1 + 1 / max(w - 1, 1), 1 + 1 / max(h - 1, 1)
+    inside = ((px / rx) ** 2 + (py / ry) ** 2 <= 1 + 1e-9).to(torch.float64)  # [H, W]
+    d2 = (px[..., None] - planar[:, 0]) ** 2 + (py[..., None] - planar[:, 1]) ** 2  # [H, W, K]
+    weight = torch.exp(-d2 / (2 * sigma**2)) * inside[..., None]
+    weight = weight / weight.sum(dim=(0, 1), keepdim=True).clamp_min(1e-300)
+    if taper_beta < max_beta:
+        taper = ((max_beta - beta) / (max_beta - taper_beta)).clamp(0, 1)  # [K]
+    else:
+        taper = (beta <= max_beta + 1e-12).to(torch.float64)  # as s2_healpix_grid keeps its cap
+    return weight * taper, inside
 
 
 class SpatialS2Projector(nn.Module):
@@ -72,12 +125,7 @@ class SpatialS2Projector(nn.Module):
             raise ValueError(f"normalization must be 'mean' or 'sqrt', got {normalization!r}")
         self.normalization = normalization
         h, w = _pair(feature_size)
-        if not 0 < coverage <= 1:
-            raise ValueError(f"coverage must be in (0, 1], got {coverage!r}")
-        if sigma <= 0:
-            raise ValueError(f"sigma must be positive, got {sigma!r}")
-        if not 0 < taper_beta <= max_beta <= math.pi:
-            raise ValueError(f"need 0 < taper_beta <= max_beta <= pi, got {taper_beta!r}, {max_beta!r}")
+        check_orthographic_args(coverage, sigma, taper_beta, max_beta)
         alpha, beta = s2_healpix_grid(level, max_beta=max_beta, dtype=torch.float64)  # [K]
         if n_subset is not None and not 1 <= n_subset <= len(alpha):
             raise ValueError(f"n_subset must be in 1..{len(alpha)} (grid points at level {level}), got {n_subset!r}")
@@ -85,20 +133,9 @@ class SpatialS2Projector(nn.Module):
         self.conv = nn.Conv2d(in_channels, sphere_channels, kernel_size=1)
         self.activation = activation
 
-        xyz = o3.angles_to_xyz(alpha, beta)  # [K, 3]
-        planar = xyz[:, [0, 2]]  # (u_x, u_z): image (horizontal, vertical)
-        planar = coverage * planar / planar.norm(dim=1).max()
-        rows = torch.linspace(-1, 1, h, dtype=torch.float64) if h > 1 else torch.zeros(1, dtype=torch.float64)
-        cols = torch.linspace(-1, 1, w, dtype=torch.float64) if w > 1 else torch.zeros(1, dtype=torch.float64)
-        py, px = torch.meshgrid(rows, cols, indexing="ij")  # [H, W]
-        # the image reaches half a cell beyond the outermost centres: its inscribed ellipse has these semi-axes
-        rx, ry = 1 + 1 / max(w - 1, 1), 1 + 1 / max(h - 1, 1)
-        inside = ((px / rx) ** 2 + (py / ry) ** 2 <= 1 + 1e-9).to(torch.float64)  # [H, W]
-        d2 = (px[..., None] - planar[:, 0]) ** 2 + (py[..., None] - planar[:, 1]) ** 2  # [H, W, K]
-        weight = torch.exp(-d2 / (2 * sigma**2)) * inside[..., None]
-        weight = weight / weight.sum(dim=(0, 1), keepdim=True).clamp_min(1e-300)
-        taper = ((max_beta - beta) / (max_beta - taper_beta)).clamp(0, 1) if taper_beta < max_beta else 1.0
-        weight = weight * taper
+        weight, inside = orthographic_interpolation(
+            alpha, beta, (h, w), coverage=coverage, sigma=sigma, max_beta=max_beta, taper_beta=taper_beta
+        )  # [H, W, K], [H, W]
         self.register_buffer("inside", inside.to(torch.float32), persistent=False)  # [H, W]
         self.interpolation = nn.Parameter(weight.to(torch.float32), requires_grad=learn_interpolation)  # [H, W, K]
         self.register_buffer("alpha", alpha.float(), persistent=False)

@@ -1,0 +1,124 @@
+"""The paper's tables as sweeps (``python -m src.train table=tableN``, ``hydra/sweeper=table``): the
+sweeper's union of grids, that each table file names exactly the runs its table needs, and (slow)
+that every table file launches on the fixtures of the published datasets and can be tabulated."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from omegaconf import OmegaConf
+
+from hydra_plugins.image2sphere_sweeper.table_sweeper import expand_grids
+from image2sphere.reporting import Run, build_table, load_layouts
+from test_methods_entry import METHOD_SMOKE
+from test_train_entry import ENV, REPO, published_fixtures  # noqa: F401  (a fixture used below)
+
+LAYOUTS = load_layouts()
+TABLES = sorted(p.stem for p in (REPO / "conf" / "table").glob("*.yaml"))
+PARSER = OverridesParser.create()
+
+
+def test_union_of_grids_in_order_without_duplicates():
+    jobs = expand_grids(PARSER, {"experiment": "e"}, [{"model": "a", "seed": "0,1"}, {"model": "a,b"}])
+    assert jobs == [
+        ["experiment=e", "model=a", "seed=0"],
+        ["experiment=e", "model=a", "seed=1"],
+        ["experiment=e", "model=a"],
+        ["experiment=e", "model=b"],
+    ]
+    # "model=a" without a seed is a different job from "model=a seed=0": kept; an exact repeat is not
+    assert len(expand_grids(PARSER, {}, [{"model": "a,b"}, {"model": "b,c"}])) == 3
+
+
+def test_command_line_wins_over_the_grid_and_a_command_line_sweep_multiplies():
+    jobs = expand_grids(PARSER, {"x": 1}, [{"lmax": "2,4"}, {"model": "m"}], ["lmax=8", "seed=0,1"])
+    assert jobs == [
+        ["x=1", "lmax=8", "seed=0"],
+        ["x=1", "lmax=8", "seed=1"],
+        ["x=1", "model=m", "lmax=8", "seed=0"],
+        ["x=1", "model=m", "lmax=8", "seed=1"],
+    ]
+    assert expand_grids(PARSER, {}, [{"flag": True, "none": None}]) == [
+        ["flag=True", "none=null"]
+    ]  # booleans as Hydra writes them
+
+
+def table_jobs(table: str) -> list[list[str]]:
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        cfg = compose("train", overrides=[f"table={table}"], return_hydra_config=True)
+    sweeper = cfg.hydra.sweeper
+    assert sweeper._target_.endswith("TableSweeper") and cfg.hydra.mode.name == "MULTIRUN"
+    return expand_grids(PARSER, OmegaConf.to_container(sweeper.params), OmegaConf.to_container(sweeper.grids))
+
+
+def composed_run(table: str, job: list[str], index: int) -> Run:
+    """What the job's run directory will say it was (its group choices and config), as src.tables reads it."""
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        cfg = compose("train", overrides=[f"table={table}", *job], return_hydra_config=True)
+    choices = OmegaConf.to_container(cfg.hydra.runtime.choices)
+    config = OmegaConf.to_container(cfg, resolve=False)
+    config.pop("hydra")
+    assert config["task_name"] == table
+    return Run(path=Path(f"{table}/{index}"), metrics={"acc15": 0.5}, choices=choices, config=config, overrides=job)
+
+
+@pytest.mark.parametrize("table", TABLES)
+def test_each_table_file_names_exactly_the_runs_of_its_table(table):
+    """Every job composes; every cell of the table's layout has a job, every job fills a cell."""
+    jobs = table_jobs(table)
+    runs = [composed_run(table, job, i) for i, job in enumerate(jobs)]
+    filled = build_table(table, LAYOUTS[table], runs)
+    assert not filled.unmatched, [r.overrides for r in filled.unmatched]
+    layout = LAYOUTS[table]
+    for row, cells in zip(layout["rows"], filled.cells, strict=True):
+        for column, cell in zip(layout["columns"], cells, strict=True):
+            assert cell.runs, (table, row["label"], column["id"])
+    # I2S's seeds as the paper reports them
+    i2s = next(
+        i for i, r in enumerate(layout["rows"]) if {**layout.get("match", {}), **r["match"]}.get("model") == "i2s"
+    )
+    expected_seeds = {"table1": 5, "table2": 6, "table5": 6}.get(table, 1)
+    assert len(filled.cells[i2s][0].runs) == expected_seeds
+    assert sorted(r.seed for r in filled.cells[i2s][0].runs) == list(range(expected_seeds))
+    assert len(jobs) == {"table1": 12, "table2": 14, "table3": 28, "table4": 6, "table5": 13, "table6": 4,
+                         "table7": 5, "table8": 6}[table]  # fmt: skip
+
+
+def test_table5_can_be_printed_from_table1s_runs():
+    runs = [composed_run("table1", job, i) for i, job in enumerate(table_jobs("table1"))]
+    filled = build_table("table5", LAYOUTS["table5"], runs)
+    assert not filled.unmatched and all(row[0].runs for row in filled.cells)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("table", TABLES)
+def test_every_table_launches_on_the_fixtures_and_is_tabulated(table, published_fixtures, tmp_path):  # noqa: F811
+    """The first and the last job of each table (``hydra.sweeper.jobs``), one batch each, on the
+    fixtures of the published datasets; their directories keep the job numbers of the full table;
+    src.tables then fills exactly those cells."""
+    jobs = table_jobs(table)
+    last = len(jobs) - 1
+    cmd = [sys.executable, "-m", "src.train", f"table={table}", f"hydra.sweeper.jobs=[0,{last}]",
+           f"paths.data_dir={published_fixtures}", f"paths.log_dir={tmp_path}", *METHOD_SMOKE]  # fmt: skip
+    env = {**ENV, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", ENV["OMP_NUM_THREADS"])}
+    proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    (sweep,) = (tmp_path / table / "multiruns").iterdir()
+    assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == sorted({"0", str(last)})
+    for job in (0, last):
+        overrides = (sweep / str(job) / ".hydra" / "overrides.yaml").read_text()
+        assert all(o in overrides for o in jobs[job]), (jobs[job], overrides)
+        assert json.loads((sweep / str(job) / "metrics.json").read_text())["n_images"] > 0
+    proc = subprocess.run([sys.executable, "-m", "src.tables", str(sweep)], cwd=REPO, env=env, capture_output=True,
+                          text=True, timeout=300)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "not in this table" not in proc.stdout and "not finished" not in proc.stdout
+    assert proc.stdout.count("ours (1 run)") == 2  # the rows of the two jobs
+    assert (sweep / "tables" / f"{table}.md").is_file() and (sweep / "tables" / f"{table}.tex").is_file()

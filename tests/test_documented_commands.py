@@ -15,28 +15,38 @@ commands are run once. Each command runs in a scratch directory that stands in f
 (``python -m image2sphere.data.fixtures``), ``logs/train/runs/<run>`` to a checkpoint trained once
 here, ``benchmarks`` to this checkout's. Placeholders are filled in: ``<run>`` and ``ckpt_path=...``
 (that checkpoint), ``/data/symsol`` and ``/path/to/symsol`` (``data/symsol``), image files named by
-``image=`` (written here). The documented arguments are never changed or removed; the only additions
-(never for a key the command sets itself) are
+``image=`` (written here), a table's sweep directory ``logs/tableN/multiruns/<date>_<time>_<pid>`` (or
+``.../<sweep>``): written here with a finished run for every job of table N, each run's ``.hydra/``
+composed from the real configs as ``python -m src.train table=tableN`` composes it (on the dataset of
+``--dataset`` where the command gives one) and fixed metrics. The documented arguments are never
+changed or removed; the only additions (never for a key the command sets itself) are
 
 * training: ``trainer.fast_dev_run=true`` and ``paths.*`` into the scratch directory, plus the small
   data and network settings of ``test_train_entry`` (``TINY``, ``SMOKE``) where every job's composed
   config has that key, except for the headline ``python -m src.train``, which runs its real default
   config for one batch; a resumed run gets only ``fast_dev_run``, ``logger=none`` and the paths;
+* a paper table (``table=tableN``, ``hydra/sweeper=table``): ``hydra.sweeper.jobs=[0,<last>]``, its
+  first and last job only (in the directories of those numbers), unless the command names its jobs;
+  the keys the table itself sets get none of the small settings (``lmax=2`` would collapse Table 7);
 * ``encoder.weights=IMAGENET1K_*``: torchvision cannot download here (the proxy variables point at a
   closed local port, ``TORCH_HOME`` is empty), so these runs must fail exactly at that download, for
-  the weights and ResNet depth each job asks for, and not in the config;
-* ``python benchmarks/grid_eval.py`` (about two minutes) runs until its level-3 comparison is printed;
+  the weights and ResNet depth each job asks for, and not in the config. A sweep runs its jobs in
+  batches and stops after the first batch with a failed job: a table's jobs 0 and last are two
+  batches (the sweeper batches consecutive job numbers), so only job 0 gets to its download;
+* ``python benchmarks/grid_eval.py`` (about two minutes) runs until its level-3 comparison is printed,
+  ``python benchmarks/table_cost.py`` to its end (a job line for every job, a total per table);
 * ``pip install`` lines are compared with what ``.ci/run`` installs; ``python -m pytest`` is not run
   inside the suite: ``.ci/run`` must end with exactly that command;
 * external tools (``SKIPPED``) are listed with the reason they are not run.
 
-Marked slow (run by the full suite only): the benchmark, training sweeps of more than four jobs, and
+Marked slow (run by the full suite only): the benchmarks, training sweeps of more than four jobs, and
 commands that the README does not show (those of docs/ and config comments: variants of README
 commands that the quick run covers).
 """
 
 from __future__ import annotations
 
+import argparse
 import ast
 import itertools
 import os
@@ -54,6 +64,8 @@ import yaml
 from PIL import Image
 
 import image2sphere  # noqa: F401  (before torchvision, which check_pretrained_download imports)
+from test_table_sweeps import composed_run, table_jobs
+from test_tables import make_run
 from test_train_entry import ENV, SMOKE, TINY, run_train
 
 REPO = Path(__file__).resolve().parents[1]
@@ -75,6 +87,10 @@ SKIPPED = {
 }
 
 PATH_PLACEHOLDERS = {"/data/symsol": "data/symsol", "/path/to/symsol": "data/symsol"}
+# a table's sweep directory as the documents name it, and the directory this test writes in its place
+TABLE_SWEEP = re.compile(r"logs/(table\d+)/multiruns/(?:<date>_<time>_<pid>|<sweep>)")
+SWEEP_NAME = "2025-01-01_00-00-00_4242"
+TABLE_SWEEP_DIR = re.compile(rf"logs/(table\d+)/multiruns/{SWEEP_NAME}")
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 PRETRAINED = re.compile(r"^encoder\.weights=(IMAGENET1K_V\d)$")
 CONFIG_ERRORS = ("not in struct", "ConfigAttributeError", "Could not override", "ConfigCompositionException",
@@ -375,6 +391,7 @@ def fill_placeholders(args: list[str], ws: Workspace) -> list[str]:
         value = value.replace("logs/train/runs/<run>", f"logs/train/runs/{ws.run.name}")
         value = value.replace("<run>", f"logs/train/runs/{ws.run.name}")
         value = PATH_PLACEHOLDERS.get(value, value)
+        value = TABLE_SWEEP.sub(rf"logs/\1/multiruns/{SWEEP_NAME}", value)
         out.append(f"{key}={value}" if eq else value)
     for arg in out:
         assert "<" not in arg and "..." not in arg, f"a placeholder this test does not know: {arg!r}"
@@ -398,9 +415,44 @@ def describe(argv: list[str], proc: subprocess.CompletedProcess | None = None, o
     return f"\ncommand: {shlex.join(argv)}\n--- stdout (tail)\n{out[-3000:]}\n--- stderr (tail)\n{err[-5000:]}"
 
 
+def table_of(args: list[str]) -> str | None:
+    """The paper table a ``python -m src.train table=tableN ...`` launches (None: not a table)."""
+    tables = [a.split("=", 1)[1] for a in args if "=" in a and override_key(a) == "table"]
+    return tables[-1] if tables else None
+
+
+def all_table_jobs(args: list[str]) -> list[list[str]]:
+    """Every job of the command's table by job number, as the table sweeper expands it: the table's
+    params and grids, then the command line's overrides (those not of ``hydra.``), which win."""
+    arguments = [a for a in args if "=" in a and not a.startswith("-") and not override_key(a).startswith("hydra.")]
+    return table_jobs(table_of(args), arguments)
+
+
+def _named_jobs(args: list[str]) -> list[int] | None:
+    named = [a.split("=", 1)[1] for a in args if "=" in a and override_key(a) == "hydra.sweeper.jobs"]
+    return sorted({int(n) for n in yaml.safe_load(named[-1])}) if named else None
+
+
+def table_selection(args: list[str]) -> list[int]:
+    """The job numbers a table command runs here: those it names, or its first and last (added here)."""
+    named = _named_jobs(args)
+    return named if named is not None else sorted({0, len(all_table_jobs(args)) - 1})
+
+
+def first_batch(numbers: list[int]) -> list[int]:
+    """The table sweeper's first batch of ``numbers``: the run of consecutive numbers it starts with."""
+    batch = numbers[:1]
+    for n in numbers[1:]:
+        if n != batch[-1] + 1:
+            break
+        batch.append(n)
+    return batch
+
+
 def sweep_values(args: list[str]) -> dict[str, list[str]]:
-    """The swept keys of a multirun and their values (command-line lists and hparams_search files)."""
-    multirun = "-m" in args or "--multirun" in args
+    """The swept keys of a multirun and their values (command-line lists, hparams_search files, and
+    every key a paper table sets that the command line does not set to one value)."""
+    multirun = "-m" in args or "--multirun" in args or table_of(args) is not None
     swept: dict[str, list[str]] = {}
     for arg in args:
         if arg.startswith("hparams_search="):
@@ -412,11 +464,22 @@ def sweep_values(args: list[str]) -> dict[str, list[str]]:
         for arg in args:
             if "=" in arg and not arg.startswith("-") and "," in arg.split("=", 1)[1] and "[" not in arg:
                 swept[override_key(arg)] = arg.split("=", 1)[1].split(",")
+    if table_of(args) is not None:
+        fixed = {override_key(a) for a in args if "=" in a and not a.startswith("-")} - set(swept)
+        for job in all_table_jobs(args):
+            for override in job:
+                key, value = override_key(override), override.split("=", 1)[1]
+                if key not in fixed and value not in swept.setdefault(key, []):
+                    swept[key].append(value)
     return swept
 
 
 def job_overrides(args: list[str]) -> list[list[str]]:
-    """The overrides of each job the documented command launches (one for a single run)."""
+    """The overrides of each job the documented command launches here (one for a single run; a table's
+    selected jobs, see :func:`table_selection`)."""
+    if table_of(args) is not None:
+        jobs = all_table_jobs(args)
+        return [jobs[n] for n in table_selection(args)]
     sweep = sweep_values(args)
     fixed = [a for a in args if "=" in a and not a.startswith("-") and override_key(a) not in sweep]
     combos = itertools.product(*[[f"{key}={v}" for v in values] for key, values in sweep.items()])
@@ -448,6 +511,8 @@ def train_additions(args: list[str], ws: Workspace) -> list[str]:
         return [a for a in ["trainer.fast_dev_run=true", "logger=none", *paths] if override_key(a) not in keys]
     configs = [compose_train(job) for job in job_overrides(args)]
     out, seen = [], set(keys)
+    if table_of(args) is not None and "hydra.sweeper.jobs" not in keys:  # its first and last job
+        out.append(f"hydra.sweeper.jobs=[{','.join(str(n) for n in table_selection(args))}]")
     for arg in ["trainer.fast_dev_run=true", *SMOKE, *TINY, *paths]:
         key = override_key(arg)
         if key in seen or any(OmegaConf.select(c, key, default="<absent>", throw_on_resolution_failure=False)
@@ -507,7 +572,10 @@ def check_pretrained_download(argv, proc, args: list[str], weights: str) -> None
 
     register_resolvers()
     urls, depths = [], []
-    for job in job_overrides(args):
+    jobs = job_overrides(args)
+    if table_of(args) is not None:  # the sweep stops after its first batch (all of whose jobs fail)
+        jobs = jobs[: len(first_batch(table_selection(args)))]
+    for job in jobs:
         depths.append(int(compose_train(job).encoder.depth))
         urls.append(get_weight(f"ResNet{depths[-1]}_Weights.{weights}").url)
     output = proc.stdout + proc.stderr
@@ -533,11 +601,47 @@ def test_pretrained_check_fails_on_a_config_error_or_other_weights():
         check_pretrained_download([], subprocess.CompletedProcess([], 1, "", other), args, "IMAGENET1K_V2")
 
 
+def test_a_table_command_runs_the_tables_first_and_last_job():
+    """The jobs of ``table=table2``: PASCAL3D+ with ResNet-101 (not the primary config's), the command's
+    keys in every job and winning over the table's; only job 0 reaches its download (two batches)."""
+    from torchvision.models import get_weight
+
+    args = ["table=table2", "encoder.weights=IMAGENET1K_V2"]
+    assert table_selection(args) == [0, 13] and first_batch([0, 13]) == [0] and first_batch([3, 4, 6]) == [3, 4]
+    assert table_selection([*args, "hydra.sweeper.jobs=[7,3,7]"]) == [3, 7]
+    first, last = job_overrides(args)
+    assert first == ["experiment=pascal3d", "model=i2s", "seed=0", *args]
+    assert last == ["experiment=pascal3d", "model=ipdf", *args]
+    assert {"experiment", "model", "seed"} <= set(sweep_values(args)) and "encoder.weights" not in sweep_values(args)
+    # a key on the command line replaces the table's own sweep of it: Table 7 with lmax=4 is one job
+    assert all_table_jobs(["table=table7", "lmax=4"]) == [
+        ["experiment=modelnet10_limited", "model=i2s", "lmax=4", "table=table7"]
+    ]
+    assert "lmax" not in sweep_values(["table=table7", "lmax=4"])
+    url = get_weight("ResNet101_Weights.IMAGENET1K_V2").url
+    download = (f'Downloading: "{url}" to /tmp/x\ncould not load torchvision weights ResNet101_Weights.IMAGENET1K_V2 '
+                "(<urlopen error [Errno 111] Connection refused>)")  # fmt: skip
+    check_pretrained_download([], subprocess.CompletedProcess([], 1, "", download), args, "IMAGENET1K_V2")
+    with pytest.raises(AssertionError, match="expected downloads"):  # the last job must not have run
+        check_pretrained_download([], subprocess.CompletedProcess([], 1, "", download * 2), args, "IMAGENET1K_V2")
+
+
 def check_train(argv, proc, args: list[str], ws: Workspace) -> None:
     info = describe(argv, proc)
     assert proc.returncode == 0, info
     overrides = [a for a in args if "=" in a and not a.startswith("-")]
     sweep = sweep_values(args)
+    if table_of(args) is not None:  # the selected jobs of the table, in the directories of their numbers
+        jobs, numbers, table = _job_dirs(ws, "multiruns"), table_selection(args), all_table_jobs(args)
+        assert {j.parent.parent.parent.name for j in jobs} == {table_of(args)}, f"not under logs/<table>: {jobs}"
+        assert sorted(int(j.name) for j in jobs) == numbers, f"job directories {jobs}, expected {numbers}" + info
+        for job in jobs:
+            assert (job / "metrics.json").is_file(), f"{job} has no metrics.json" + info
+            ran = yaml.safe_load((job / ".hydra" / "overrides.yaml").read_text())
+            missing = [o for o in table[int(job.name)] if o not in ran]
+            assert not missing, f"job {job.name} of the table did not run with {missing}: {ran}" + info
+            assert_overrides_applied(job / ".hydra" / "config.yaml", _choices(job), overrides, sweep)
+        return
     if sweep:
         jobs = _job_dirs(ws, "multiruns")
         expected = 1
@@ -671,6 +775,72 @@ def test_benchmark_command_line_parses():
     assert proc.returncode == 0 and "--levels" in proc.stdout and "--dense-level5" in proc.stdout, proc.stderr
 
 
+def check_table_cost(argv, ws: Workspace) -> None:
+    """``benchmarks/table_cost.py`` to its end: a line for every job of each table asked for, and a total."""
+    options = argparse.ArgumentParser(add_help=False)
+    options.add_argument("--tables", default=",".join(sorted(p.stem for p in (REPO / "conf" / "table").glob("*.yaml"))))
+    tables = options.parse_known_args(argv[2:])[0].tables.split(",")
+    proc = run_in(ws, argv, timeout=1800)
+    info = describe(argv, proc)
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, info
+    lines = proc.stdout.splitlines()
+    for table in tables:
+        jobs = table_jobs(table)
+        assert f"## {table}: {len(jobs)} jobs" in lines, info
+        section = lines[lines.index(f"## {table}: {len(jobs)} jobs") + 1 :]
+        for job in jobs:
+            assert any(re.match(rf"{re.escape(' '.join(job))}\s+\d", line) for line in section), (job, info)
+        total = next((line for line in section if line.startswith("total:")), "")
+        assert "GPU-hours (estimate)" in total and "CPU-hours" in total, info
+
+
+def write_table_sweep(sweep: Path, table: str, dataset: str | None) -> None:
+    """A finished run for every job of ``table`` under ``sweep`` (``<sweep>/<job number>``), as
+    ``python -m src.train table=<table> [dataset=<dataset>]`` leaves them, with fixed metrics for every
+    metric any table's layout reads."""
+    from image2sphere.reporting import load_layouts
+
+    metrics = {"n_images": 100.0}
+    for layout in load_layouts().values():
+        for name in filter(None, (column.get("metric") for column in layout["columns"])):  # not the mean_of ones
+            metrics[name] = 0.5 if name.startswith("acc") else 3.0 if name.startswith("log_likelihood") else 20.0
+    arguments = [f"dataset={dataset}"] if dataset else []
+    for number, job in enumerate(table_jobs(table, arguments)):
+        run = composed_run(table, job, number)
+        make_run(sweep, str(number), run.choices, run.config, metrics, [f"table={table}", *job])
+
+
+def tables_options(args: list[str]) -> argparse.Namespace:
+    """The run directories and the options of a ``python -m src.tables`` command that this test reads."""
+    options = argparse.ArgumentParser(add_help=False)
+    options.add_argument("run_dirs", nargs="*")
+    options.add_argument("--table", action="append")
+    options.add_argument("--dataset")
+    options.add_argument("--out", type=Path)
+    return options.parse_known_args(args)[0]
+
+
+def check_tables(argv, proc, args: list[str], ws: Workspace) -> None:
+    """``python -m src.tables <sweep> ...``: the table printed with our runs in it, and written."""
+    info = describe(argv, proc)
+    assert proc.returncode == 0, info
+    if "--help" in args or "-h" in args:
+        assert proc.stdout.startswith("usage:") and "RUN_DIR" in proc.stdout and "--table" in proc.stdout, info
+        return
+    given = tables_options(args)
+    tables = given.table or sorted({m.group(1) for d in given.run_dirs for m in [TABLE_SWEEP_DIR.search(d)] if m})
+    assert tables, f"no table named or launched: {args}"
+    out = ws.root / (given.out or Path(given.run_dirs[0]) / "tables")
+    for table in tables:
+        number = re.fullmatch(r"table(\d+)", table).group(1)
+        assert f"### Table {number}" in proc.stdout, info
+        assert (out / f"{table}.md").is_file() and (out / f"{table}.tex").is_file(), f"nothing written to {out}" + info
+    assert "ours (" in proc.stdout, "no row has a run" + info
+    assert "not in this table" not in proc.stdout and "not finished" not in proc.stdout + proc.stderr, info
+    if given.dataset:  # runs on other data than the paper's: the table says so
+        assert "not comparable" in proc.stdout, info
+
+
 def check_pip(command: str) -> None:
     """A README ``pip install`` line installs what ``.ci/run`` installs (same packages, same pins)."""
 
@@ -707,14 +877,17 @@ def render_documented_sets(args: list[str], ws: Workspace) -> None:
 
 
 def _param(command: Command):
-    """A parametrized case. Slow: the benchmark, training sweeps of more than four jobs, and commands that
-    the README does not show (docs/ and config comments: variants of the README's, which the quick run
-    covers)."""
+    """A parametrized case. Slow: the benchmarks, training sweeps of more than four jobs (a table runs
+    two unless it names its jobs), and commands that the README does not show (docs/ and config
+    comments: variants of the README's, which the quick run covers)."""
     words = shlex.split(command.text)
-    slow = words[:2] == ["python", "benchmarks/grid_eval.py"]
+    slow = words[:2] in (["python", "benchmarks/grid_eval.py"], ["python", "benchmarks/table_cost.py"])
     slow = slow or not any(w.startswith("README.md:") for w in command.where) and _first_words(command.text) == "python"
     if words[:3] == ["python", "-m", "src.train"] and not any(PRETRAINED.match(w) for w in words):
-        slow = slow or len(job_overrides(words[3:])) > 4
+        if table_of(words[3:]) is not None:  # its first and last job, unless it names its jobs
+            slow = slow or len(_named_jobs(words[3:]) or [0, 1]) > 4
+        else:
+            slow = slow or len(job_overrides(words[3:])) > 4
     return pytest.param(command, id=command.text, marks=[pytest.mark.slow] if slow else [])
 
 
@@ -739,6 +912,8 @@ def test_documented_command(command: Command, fixtures_root, checkpoint_run, tmp
     argv = [sys.executable, *args]
     if args[0] == "benchmarks/grid_eval.py":
         return check_benchmark(argv, ws)
+    if args[0] == "benchmarks/table_cost.py":
+        return check_table_cost(argv, ws)
     assert args[0] == "-m", f"no runner for {text!r}"
     module, rest = args[1], args[2:]
     if module == "src.train":
@@ -755,10 +930,17 @@ def test_documented_command(command: Command, fixtures_root, checkpoint_run, tmp
         "image2sphere.data.verify": check_verify,
         "image2sphere.data.fixtures": check_fixtures,
         "image2sphere.data.render": check_render,
+        "src.tables": check_tables,
     }
     assert module in checks, f"no runner for python -m {module} (shown at {command.where})"
     if module in ("src.eval", "src.predict"):
         argv += [f"paths.log_dir={ws.root / 'logs'}"]
+    if module == "src.tables":  # the sweeps it reads: a finished run for every job of the table
+        given = tables_options(rest)
+        for run_dir in given.run_dirs:
+            sweep = TABLE_SWEEP_DIR.fullmatch(run_dir)
+            if sweep and not (ws.root / run_dir).exists():
+                write_table_sweep(ws.root / run_dir, sweep.group(1), given.dataset)
     proc = run_in(ws, argv)
     checks[module](argv, proc, rest if module.startswith("src.") else args, ws)
 

@@ -8,6 +8,7 @@ import json
 import os
 import subprocess
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 import pytest
@@ -53,12 +54,15 @@ def test_command_line_wins_over_the_grid_and_a_command_line_sweep_multiplies():
     ]  # booleans as Hydra writes them
 
 
-def table_jobs(table: str) -> list[list[str]]:
+def table_jobs(table: str, arguments: Sequence[str] = ()) -> list[list[str]]:
+    """The jobs of ``table=<table>`` by job number; ``arguments``: the command line's other (non-hydra)
+    overrides, which the sweeper appends to every job."""
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         cfg = compose("train", overrides=[f"table={table}"], return_hydra_config=True)
     sweeper = cfg.hydra.sweeper
     assert sweeper._target_.endswith("TableSweeper") and cfg.hydra.mode.name == "MULTIRUN"
-    return expand_grids(PARSER, OmegaConf.to_container(sweeper.params), OmegaConf.to_container(sweeper.grids))
+    params, grids = OmegaConf.to_container(sweeper.params), OmegaConf.to_container(sweeper.grids)
+    return expand_grids(PARSER, params, grids, list(arguments))
 
 
 def composed_run(table: str, job: list[str], index: int) -> Run:

@@ -57,8 +57,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument("--force", action="store_true", help="replace output files that already exist")
     parser.add_argument(
-        "--wandb-project", default=None, help="also log each table (and its figure) to this wandb project"
-    )
+        "--wandb-project", nargs="?", const="", default=None, metavar="PROJECT",
+        help="also log each table (and its figure) to wandb: to PROJECT, or without a value to the project the "
+        "runs logged to (their logger.wandb.project)",
+    )  # fmt: skip
     parser.add_argument("--wandb-entity", default=None, help="wandb entity (team) of --wandb-project")
     parser.add_argument(
         "--wandb-mode", choices=("offline", "online"), default="offline",
@@ -70,6 +72,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def _push_to_wandb(args: argparse.Namespace, filled, markdown: str, figure: Path | None, out: Path) -> None:
     import wandb
 
+    project, entity = args.wandb_project, args.wandb_entity
+    if not project:  # the sweep's own project: where its runs logged
+        projects = {r.get("logger.wandb.project", None) for r in filled.used} - {None}
+        project = sorted(projects)[0] if len(projects) == 1 else "image2sphere"
+        entities = {r.get("logger.wandb.entity", None) for r in filled.used} - {None}
+        entity = entity or (sorted(entities)[0] if len(entities) == 1 else None)
+
     columns = ["method", "source"] + [
         c["title"] if not c.get("group") else f"{c['group']}: {c['title']}" for c in filled.layout["columns"]
     ]
@@ -77,7 +86,7 @@ def _push_to_wandb(args: argparse.Namespace, filled, markdown: str, figure: Path
 
     data = [[label, source, *cells] for label, source, cells in table_lines(filled, MISSING_MD, "±")]
     run = wandb.init(
-        project=args.wandb_project, entity=args.wandb_entity, mode=args.wandb_mode, dir=str(out),
+        project=project, entity=entity, mode=args.wandb_mode, dir=str(out),
         job_type="paper-table", name=filled.name,
         config={"table": filled.name, "runs": [str(r.path) for r in filled.used]},
     )  # fmt: skip
@@ -130,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
         print("wrote " + ", ".join(str(w) for w in written))
         if not filled.used:
             print(f"warning: no finished run matches {name}'s rows (see 'not in this table' above)", file=sys.stderr)
-        if args.wandb_project:
+        if args.wandb_project is not None:
             _push_to_wandb(args, filled, markdown, figure, out)
     return 0
 

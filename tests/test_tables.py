@@ -378,3 +378,31 @@ def test_layout_errors_name_the_table_and_entry(tmp_path):
     path.write_text(yaml.safe_dump(bad))
     with pytest.raises(ValueError, match=r"row 'r': published values for unknown columns \['zz'\]"):
         load_layouts(path)
+
+
+def test_wandb_project_defaults_to_the_runs_own(tmp_path, monkeypatch):
+    import wandb
+
+    calls = []
+
+    class FakeRun:
+        def log(self, data):
+            calls.append(("log", sorted(data)))
+
+        def finish(self):
+            calls.append(("finish",))
+
+    monkeypatch.setattr(wandb, "init", lambda **kw: calls.append(("init", kw)) or FakeRun())
+    config = {"logger": {"wandb": {"project": "my-sweeps", "entity": "lab"}}}
+    make_run(tmp_path / "p", "0", {"table": "table6", "model": "i2s", "dataset": "modelnet10_limited"}, config,
+             accuracy_metrics(0.5, 0.6, 40))  # fmt: skip
+    assert tables_main([str(tmp_path / "p"), "--out", str(tmp_path / "o1"), "--wandb-project"]) == 0
+    init = calls[0][1]
+    assert (init["project"], init["entity"], init["mode"], init["name"]) == ("my-sweeps", "lab", "offline", "table6")
+    assert calls[1] == ("log", ["table6", "table6_markdown"]) and calls[2] == ("finish",)
+    calls.clear()
+    assert tables_main([str(tmp_path / "p"), "--out", str(tmp_path / "o2"), "--wandb-project", "other"]) == 0
+    assert calls[0][1]["project"] == "other"
+    calls.clear()
+    assert tables_main([str(tmp_path / "p"), "--out", str(tmp_path / "o3")]) == 0
+    assert not calls  # no wandb unless asked

@@ -15,6 +15,7 @@ from PIL import Image
 
 from conftest import haar_rotations
 from image2sphere.inference import Predictor
+from image2sphere.metrics import HDR_COVERAGE_KEYS
 from image2sphere.training.checkpoint import CheckpointError, build_module, load_checkpoint
 from test_train_entry import ENV, REPO, read_metrics, run_train
 
@@ -54,10 +55,13 @@ def test_eval_scores_every_test_image_and_reproduces_the_training_metrics(traine
     metrics = json.loads((out / "metrics.json").read_text())
     trained_metrics = read_metrics(run)
     assert metrics["n_images"] == trained_metrics["n_images"] == 6
-    for key in ("log_likelihood", "log_likelihood/cube", "spread_deg", "median_error_deg/cone", "acc15"):
+    # the calibration's tie-break is drawn per image, so the same images give the same coverage in any batch
+    for key in ("log_likelihood", "log_likelihood/cube", "spread_deg", "median_error_deg/cone", "acc15",
+                "calibration_ece", "calibration_ece/cone", "hdr_coverage_50/cube", *HDR_COVERAGE_KEYS):  # fmt: skip
         assert metrics[key] == pytest.approx(trained_metrics[key], rel=1e-5, abs=1e-6), key
     table = (out / "metrics.md").read_text()
-    assert "| class | log lik. |" in table and "| cube |" in table and "| mean |" in table
+    assert "| class | log lik. | spread | ECE |" in table and "| cube |" in table and "| mean |" in table
+    assert (out / "reliability.png").read_bytes()[:4] == b"\x89PNG"
     assert "med.err" in proc.stdout and str(ckpt) in proc.stdout
     pngs = sorted(p.name for p in (out / "plots").iterdir())
     assert pngs == ["test_0.png", "test_1.png"]

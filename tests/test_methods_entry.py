@@ -24,6 +24,7 @@ from PIL import Image
 from conftest import haar_rotations
 from image2sphere.distributions.base import PointEstimate, PoseDistribution
 from image2sphere.inference import Predictor
+from image2sphere.metrics import HDR_COVERAGE_KEYS
 from test_train_entry import ENV as TRAIN_ENV
 from test_train_entry import REPO, SMOKE, TINY, published_fixtures  # noqa: F401  (a fixture used below)
 
@@ -53,8 +54,9 @@ METHOD_SMOKE = [*SMOKE, "dataset.image_size=32", "encoder=resnet18", "lmax=2", "
                 "callbacks.progress_bar.refresh_rate=0"]  # fmt: skip
 # the headline numbers every method reports, and those only a density has
 HEADLINE = ("acc15", "acc30", "median_error_deg")
-DENSITY_ONLY = ("log_likelihood", "spread_deg")
-TABLE_HEADER = ["class", "log lik.", "spread", "acc@15", "acc@30", "med.err"]
+DENSITY_ONLY = ("log_likelihood", "spread_deg", "calibration_ece", *HDR_COVERAGE_KEYS)
+TABLE_HEADER = ["class", "log lik.", "spread", "ECE", "acc@15", "acc@30", "med.err"]
+N_DENSITY_COLUMNS = 3  # log lik., spread, ECE: n/a for a point regressor
 
 
 def test_every_model_config_is_covered_here():
@@ -120,8 +122,15 @@ def check_metrics(model: str, metrics: dict) -> None:
         for key in DENSITY_ONLY:
             assert math.isfinite(metrics[key]), (model, key, metrics.get(key))
         assert 0 <= metrics["spread_deg"] <= 180, model
+        # calibration: per class and the class mean, coverage growing with the HDR's mass
+        for name in [""] + sorted({k.split("/")[1] for k in metrics if k.startswith("calibration_ece/")}):
+            key = f"/{name}" if name else ""
+            coverage = [metrics[c + key] for c in HDR_COVERAGE_KEYS]
+            assert all(0 <= c <= 1 for c in coverage) and coverage == sorted(coverage), (model, key, coverage)
+            assert 0 <= metrics["calibration_ece" + key] <= 0.9, (model, key)
+        assert any(k.startswith("calibration_ece/") for k in metrics), model
     else:  # neither the headline nor any per-class value
-        absent = [k for k in metrics if k.split("/")[0] in DENSITY_ONLY or k.startswith("log_likelihood")]
+        absent = [k for k in metrics if k.split("/")[0] in DENSITY_ONLY or k.startswith(("log_likelihood", "hdr_"))]
         assert absent == [], f"{model} is a point regressor but reports {absent}"
     if closed_form:
         assert math.isfinite(metrics["log_likelihood_exact"]), model
@@ -130,18 +139,19 @@ def check_metrics(model: str, metrics: dict) -> None:
 
 
 def check_printed_table(model: str, table: list[list[str]]) -> None:
-    """Every column is printed; a regressor's log likelihood and spread read n/a in every row."""
+    """Every column is printed; a regressor's log likelihood, spread and ECE read n/a in every row."""
     density, _ = FAMILIES[model]
     header, *rows = table
     assert header == TABLE_HEADER, (model, header)
     assert rows and rows[-1][0] == "mean", (model, rows)
+    last = 1 + N_DENSITY_COLUMNS
     for row in rows:
         assert len(row) == len(TABLE_HEADER), (model, row)
-        assert all(_is_float(cell) for cell in row[3:]), (model, row)
+        assert all(_is_float(cell) for cell in row[last:]), (model, row)
         if density:
-            assert all(_is_float(cell) for cell in row[1:3]), (model, row)
+            assert all(_is_float(cell) for cell in row[1:last]), (model, row)
         else:
-            assert row[1:3] == ["n/a", "n/a"], (model, row)
+            assert row[1:last] == ["n/a"] * N_DENSITY_COLUMNS, (model, row)
 
 
 # ------------------------------------------------------------------ all methods on each dataset's fixtures
@@ -205,13 +215,16 @@ def test_eval_predict_and_predictor_on_each_family(checkpoints, tmp_path, model)
     columns = markdown_table((out / "metrics.md").read_text())
     assert columns["class"] == ["cube", "cone", "mean"]
     assert all(_is_float(c) for c in columns["med.err"] + columns["acc@15"]), columns
-    for title in ("log lik.", "spread"):  # a density's numbers; a regressor's column reads n/a, as printed
+    for title in ("log lik.", "spread", "ECE"):  # a density's numbers; a regressor's column reads n/a, as printed
         cells = columns.get(title)
         if density:
             assert cells and all(_is_float(c) for c in cells), columns
         else:
             assert cells is not None and set(cells) == {"n/a"}, columns
     assert (out / "plots" / "test_0.png").read_bytes()[:4] == b"\x89PNG"
+    # the reliability diagram of a density's calibration; a regressor has none
+    reliability = out / "reliability.png"
+    assert (reliability.read_bytes()[:4] == b"\x89PNG") if density else not reliability.exists(), model
 
     image = tmp_path / "cube.png"
     Image.fromarray(render("cube", haar_rotations(1, seed=4, dtype=torch.float32), 64)[0].numpy()).save(image)

@@ -17,6 +17,7 @@ Conventions
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -26,8 +27,8 @@ from matplotlib.figure import Figure
 from image2sphere.distributions.base import PoseDistribution
 from image2sphere.so3.grid import so3_healpix_index_to_matrix
 
-__all__ = ["FIGURE_FORMATS", "figure_format", "plot_dataset_item", "plot_so3_distribution", "rotation_to_plot_coords",
-           "save_figure"]  # fmt: skip
+__all__ = ["FIGURE_FORMATS", "figure_format", "plot_dataset_item", "plot_reliability", "plot_so3_distribution",
+           "rotation_to_plot_coords", "save_figure"]  # fmt: skip
 
 # file extensions save_figure writes, and the format each is written in
 FIGURE_FORMATS = {
@@ -150,6 +151,52 @@ def plot_dataset_item(
     gt = item["rotations"][item["mask"]]
     dist = model.output_distribution(output.float())
     return plot_so3_distribution(dist, level=level, threshold=threshold, gt_rotations=gt, title=f"{title} ({name})")
+
+
+def plot_reliability(
+    metrics: dict[str, float], class_names: list[str] | tuple[str, ...] = (), title: str | None = None
+) -> Figure:
+    """Reliability diagram of the calibration metrics (docs/evaluation.md#calibration): the coverage
+    ``hdr_coverage_<alpha>`` against the nominal HDR mass ``alpha``, one line per class of
+    ``class_names`` that has the keys (``hdr_coverage_<alpha>/<class>``) and a thick line for the mean
+    over classes, the diagonal of perfect calibration, each line's ECE in the legend.
+
+    Below the diagonal the truths fall outside the regions more often than they should (over-confident);
+    above it, less often (under-confident). ``ValueError`` when ``metrics`` has no calibration (a point
+    estimate's).
+    """
+    from image2sphere.metrics import HDR_COVERAGE_KEYS, HDR_LEVELS
+
+    if not all(key in metrics for key in HDR_COVERAGE_KEYS) or "calibration_ece" not in metrics:
+        raise ValueError(
+            "metrics have no calibration (hdr_coverage_10 ... hdr_coverage_90, calibration_ece): "
+            "a point estimate has no density to be calibrated"
+        )
+    levels = np.asarray(HDR_LEVELS)
+    fig = Figure(figsize=(5.6, 5.0))
+    ax = fig.add_axes((0.12, 0.11, 0.84, 0.8))
+    ax.plot([0, 1], [0, 1], color="0.6", linestyle="--", linewidth=1, label="calibrated")
+    classes = [c for c in class_names if all(f"{key}/{c}" in metrics for key in HDR_COVERAGE_KEYS)]
+    for name in classes:
+        coverage = [metrics[f"{key}/{name}"] for key in HDR_COVERAGE_KEYS]
+        ece = metrics.get(f"calibration_ece/{name}", math.nan)
+        ax.plot(levels, coverage, marker="o", markersize=3, linewidth=1, alpha=0.8, label=f"{name} (ECE {ece:.3f})")
+    mean = [metrics[key] for key in HDR_COVERAGE_KEYS]
+    label = "mean over classes" if classes else "all test images"
+    ax.plot(levels, mean, color="black", marker="o", linewidth=2.5,
+            label=f"{label} (ECE {metrics['calibration_ece']:.3f})")  # fmt: skip
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+    ax.set_aspect("equal")
+    ax.grid(True, alpha=0.3)
+    ax.set_xlabel("nominal mass alpha of the highest-density region")
+    ax.set_ylabel("coverage: fraction of ground truths inside")
+    ax.text(0.97, 0.03, "below the diagonal: over-confident\nabove: under-confident", fontsize=7,
+            ha="right", va="bottom", color="0.35", transform=ax.transAxes)  # fmt: skip
+    ax.legend(fontsize=7, loc="upper left", ncol=2 if len(classes) > 8 else 1)
+    if title:
+        ax.set_title(title, fontsize=9)
+    return fig
 
 
 def figure_format(path: str | Path, key: str = "path") -> str:

@@ -90,6 +90,15 @@ class SO3Distribution(PoseDistribution):
     def grid_log_density(self, level: int) -> torch.Tensor:
         return self.grid_logits(level)
 
+    def _summary_sweep(self, level: int, accumulator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`grid_summary`'s sweep on the fast path: the evaluator's logsumexp-and-max pass, which
+        hands each chunk of gamma fibres, with the exponentials it computes anyway, to the accumulator."""
+        visit = None if accumulator is None else accumulator.add_fibres
+        return self._evaluator(level).logsumexp_and_max(self.coeffs.detach(), visit=visit)
+
+    def _values_at_index(self, index: torch.Tensor, level: int) -> torch.Tensor:
+        return self._evaluator(level).logits_at(self.coeffs.detach(), index)
+
     def _evaluator(self, level: int):
         return get_grid_evaluator(self.lmax, check_streamed_level(level), self.coeffs.dtype, self.coeffs.device)
 

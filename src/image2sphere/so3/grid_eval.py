@@ -30,6 +30,7 @@ at level 6, whose full output would be 4.8 GB).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from functools import lru_cache
 
 import torch
@@ -65,6 +66,13 @@ MAX_OPERATOR_BYTES = 4 * 2**30  # refuse to build operators larger than this
 MAX_OUTPUT_BYTES = 4 * 2**30  # refuse to materialise full-grid outputs larger than this
 _BUILD_PIXELS = 4096  # pixels per e3nn wigner_D call while building an operator
 _CHUNK_ELEMENTS = 2**19  # values of one streamed [batch, pixels, gammas] block (2 MiB float32: cache-sized)
+_VISIT_ALIGN = 8  # pixels per chunk handed to a visitor: a multiple of this (HdrMassAccumulator.GROUP_PIXELS)
+
+
+def _exp_floor(dtype: torch.dtype) -> float:
+    """The most negative argument whose ``exp`` is a normal number of ``dtype`` (-87 in float32): ``exp``
+    of anything lower is below 1e-38 (1e-307 in float64), and producing subnormals is slow on CPUs."""
+    return math.log(torch.finfo(dtype).tiny) + 1.0
 
 
 def _operator_numel(lmax: int, n_pix: int) -> int:
@@ -170,36 +178,71 @@ class HealpixGridEvaluator:
                 T[:, :, 2 * t - 1 : 2 * t + 1] = out.view(B, Pc, 2)
         return T
 
-    def _pixel_reductions(self, coeffs: torch.Tensor, chunk_pixels: int | None) -> tuple[torch.Tensor, torch.Tensor]:
+    def _pixel_reductions(
+        self,
+        coeffs: torch.Tensor,
+        chunk_pixels: int | None,
+        visit: Callable[[torch.Tensor, torch.Tensor, torch.Tensor, int, torch.Tensor], None] | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Max and logsumexp over the gamma fibre of every pixel: two ``[B, P]`` tensors, streamed.
 
         Stage 1 runs once for all pixels (``[B, P, 2L+1]``, a fraction ``(2L+1) / n_gamma`` of the
         grid); stage 2 and the reductions run on pixel chunks of about ``_CHUNK_ELEMENTS`` values.
         Without autograd each chunk is written into one reused buffer and reduced in place, so
         nothing of chunk size is allocated per chunk and the process's memory stays flat.
+
+        ``visit(values, weights, reference, p0, floor)``, when given, is called once per chunk with its
+        values ``[B, Pc, G]`` (pixels ``p0 .. p0 + Pc - 1``, ``Pc`` a multiple of 8 but in the last chunk),
+        ``weights = exp(values - reference)`` and ``reference [B]``, the chunk's maximum per signal, which
+        the reduction computes on the way (the values stay in place and the exponentials go to a second
+        buffer), and ``floor [B]``, a lower bound of the grid's logsumexp (``log G`` plus the largest
+        mean of a fibre). It must not keep the tensors: the buffers are reused. With a ``visit`` the pixel
+        logsumexps are taken relative to the chunk's maximum, and a value more than ~86 (float32) below it
+        counts as exactly that far below (``e^-86``, not a slow subnormal): negligible for the grid's
+        logsumexp, the only use of this pass.
         """
-        B = coeffs.shape[0]
-        step = chunk_pixels or max(1, _CHUNK_ELEMENTS // max(1, B * self.n_gamma))
+        B, G = coeffs.shape[0], self.n_gamma
+        step = chunk_pixels or max(1, _CHUNK_ELEMENTS // max(1, B * G))
         step = min(step, self.n_pix)
+        if visit is not None and step > _VISIT_ALIGN:  # whole groups of pixels for the visitor
+            step -= step % _VISIT_ALIGN
         T = self._trig(self._gathered(coeffs), 0, self.n_pix)  # [B, P, 2L+1]
+        if visit is not None:
+            # a lower bound of the grid's logsumexp before the sweep: a fibre's logsumexp is at least
+            # log(G) plus its mean, a_0
+            floor = T[:, :, 0].detach().amax(dim=1) + math.log(G)  # [B]
         reuse = not (torch.is_grad_enabled() and coeffs.requires_grad)
         if reuse:
-            buffer = coeffs.new_empty(B * step * self.n_gamma)
+            buffer = coeffs.new_empty(B * step * G)
+            spare = coeffs.new_empty(B * step * G) if visit is not None else None
             pix_max, pix_lse = coeffs.new_empty(B, self.n_pix), coeffs.new_empty(B, self.n_pix)
         else:
             maxes, lses = [], []
         for p0 in range(0, self.n_pix, step):
             p1 = min(self.n_pix, p0 + step)
             if reuse:
-                x = buffer[: B * (p1 - p0) * self.n_gamma].view(B, p1 - p0, self.n_gamma)
+                x = buffer[: B * (p1 - p0) * G].view(B, p1 - p0, G)
                 torch.matmul(T[:, p0:p1], self._basis, out=x)  # [B, Pc, G]
-                m = x.amax(dim=2, keepdim=True)  # [B, Pc, 1], finite: the signal is a polynomial
+                if visit is None:
+                    m = x.amax(dim=2, keepdim=True)  # [B, Pc, 1], finite: the signal is a polynomial
+                    pix_max[:, p0:p1] = m.squeeze(2)
+                    pix_lse[:, p0:p1] = m.squeeze(2) + x.sub_(m).exp_().sum(dim=2).log()
+                    continue
+                m = x.amax(dim=2, keepdim=True)  # [B, Pc, 1]
+                reference = m.amax(dim=1, keepdim=True)  # [B, 1, 1]: the chunk's maximum
+                e = torch.sub(x, reference, out=spare[: x.numel()].view_as(x))  # [B, Pc, G]
+                e.clamp_(min=_exp_floor(e.dtype)).exp_()  # no subnormal results: they are slow
                 pix_max[:, p0:p1] = m.squeeze(2)
-                pix_lse[:, p0:p1] = m.squeeze(2) + x.sub_(m).exp_().sum(dim=2).log()
+                pix_lse[:, p0:p1] = reference.squeeze(2) + e.sum(dim=2).log()
+                visit(x, e, reference.reshape(B), p0, floor)
             else:
                 x = T[:, p0:p1] @ self._basis  # [B, Pc, G]
                 maxes.append(x.amax(dim=2))
                 lses.append(torch.logsumexp(x, dim=2))
+                if visit is not None:
+                    values = x.detach()
+                    reference = values.amax(dim=(1, 2))  # [B]
+                    visit(values, torch.exp(values - reference[:, None, None]), reference, p0, floor)
         if not reuse:
             pix_max, pix_lse = torch.cat(maxes, dim=1), torch.cat(lses, dim=1)
         return pix_max, pix_lse
@@ -225,11 +268,21 @@ class HealpixGridEvaluator:
 
     # ------------------------------------------------------------------ streamed reductions
     def logsumexp_and_max(
-        self, coeffs: torch.Tensor, chunk_pixels: int | None = None
+        self,
+        coeffs: torch.Tensor,
+        chunk_pixels: int | None = None,
+        visit: Callable[[torch.Tensor, torch.Tensor, torch.Tensor, int, torch.Tensor], None] | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """One streamed pass: ``(logsumexp (B,), max value (B,), argmax index (B,))`` over the grid."""
+        """One streamed pass: ``(logsumexp (B,), max value (B,), argmax index (B,))`` over the grid.
+
+        ``visit(values, weights, reference, p0, floor)``: called with every chunk of whole gamma fibres
+        ``[B, Pc, n_gamma]`` (pixels ``p0 ..``), their ``exp(values - reference)``, ``reference [B]`` and a
+        lower bound of the logsumexp ``[B]`` (each grid point once over the pass; see
+        :meth:`_pixel_reductions`), e.g.
+        :meth:`~image2sphere.so3.pose_distribution.HdrMassAccumulator.add_fibres`.
+        """
         coeffs = self._check(coeffs)
-        pix_max, pix_lse = self._pixel_reductions(coeffs, chunk_pixels)
+        pix_max, pix_lse = self._pixel_reductions(coeffs, chunk_pixels, visit)
         value, pix = pix_max.max(dim=1)  # [B]
         with torch.no_grad():  # the gamma of the best pixel: one fibre recomputed
             k = self.gamma_logits(coeffs.detach(), pix[:, None])[:, 0].argmax(dim=1)  # [B]

@@ -3,8 +3,10 @@
 The model is rebuilt from the checkpoint's own ``run_config`` (weights loaded with
 ``weights_only=True``); the test set is the checkpoint's dataset unless ``dataset=...`` is given.
 Every test image is scored. The run directory receives ``metrics.json``, ``metrics.md`` (the
-per-class table) and ``plots/test_<i>.png`` (the distributions of the first ``plots`` test images,
-ground truth drawn as rings); the metrics also go to the configured logger.
+per-class table), ``reliability.png`` (the calibration of a density method: HDR coverage against the
+nominal mass, per class and the class mean) and ``plots/test_<i>.png`` (the distributions of the first
+``plots`` test images, ground truth drawn as rings); the metrics and the reliability diagram also go
+to the configured logger.
 """
 
 from __future__ import annotations
@@ -30,7 +32,8 @@ log = logging.getLogger(__name__)
 
 def format_metrics_markdown(metrics: dict[str, float], class_names: list[str]) -> str:
     """Per-class rows and the class mean as a markdown table: the columns of the printed table, a
-    metric the method does not have (a point regressor's log likelihood and spread) reading ``n/a``."""
+    metric the method does not have (a point regressor's log likelihood, spread and calibration)
+    reading ``n/a``."""
     lines = [
         "| class | " + " | ".join(title for _, title, _ in TABLE_COLUMNS) + " |",
         "|---" * (len(TABLE_COLUMNS) + 1) + "|",
@@ -119,6 +122,9 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
         )
         with open(output_dir / "metrics.md", "x") as f:
             f.write(title + table)
+        if "calibration_ece" in metrics:  # a density method
+            title = f"{cfg.ckpt_path}\neval grid level {cfg.eval_grid_level}"
+            _plot_reliability(metrics, module.class_names, title, output_dir / "reliability.png", loggers)
         if cfg.plots:
             _plot_test_images(module, datamodule, int(cfg.plots), int(cfg.eval_grid_level), output_dir / "plots")
         print(f"\nTest metrics ({cfg.ckpt_path}, eval grid level {cfg.eval_grid_level}, refine={bool(cfg.refine)}):")
@@ -126,6 +132,21 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
         print(f"Run directory: {output_dir}\n")
     _finish_loggers(loggers)
     return metrics
+
+
+def _plot_reliability(metrics: dict, class_names: list[str], title: str, path: Path, loggers: list) -> None:
+    """The reliability diagram into ``path`` and to the loggers that take images (TensorBoard: a
+    figure, wandb: an image, both under ``test/reliability``)."""
+    from image2sphere.plot import plot_reliability, save_figure
+
+    fig = plot_reliability(metrics, class_names, title=title)
+    save_figure(fig, path)
+    for logger in loggers:
+        if type(logger).__name__ == "TensorBoardLogger":
+            logger.experiment.add_figure("test/reliability", fig, global_step=0)
+        elif type(logger).__name__ == "WandbLogger":
+            logger.log_image(key="test/reliability", images=[str(path)])
+    log.info("reliability diagram in %s", path)
 
 
 def _plot_test_images(module, datamodule, n: int, level: int, folder: Path) -> None:

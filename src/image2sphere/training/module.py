@@ -18,7 +18,9 @@ Conventions
   were all skipped is ``None`` and is passed over.
 * Metrics follow docs/evaluation.md (:mod:`image2sphere.metrics`): validation at ``val_grid_level``,
   test at ``eval_grid_level`` (spread at ``spread_grid_level``). The final test metrics are kept in
-  :attr:`test_metrics` and logged as ``test/<metric>[/<class>]``.
+  :attr:`test_metrics` and logged as ``test/<metric>[/<class>]``. The test also scores the calibration
+  of a density (HDR coverage and ECE), from the same grid sweep as the log likelihood; its random
+  tie-break is a fixed draw per (image, target) pair, seeded by the image's class and dataset index.
 """
 
 from __future__ import annotations
@@ -35,11 +37,14 @@ from image2sphere.data.common import stable_seed
 from image2sphere.distributions.base import LOG_UNIFORM_DENSITY
 from image2sphere.metrics import (
     check_targets,
+    density_pairs,
     fill_padding,
+    hdr_coverage_counts,
     log_likelihood_pairs,
     min_angular_error_deg,
     spread_deg,
     summarize_pose_metrics,
+    tie_break_uniforms,
 )
 from image2sphere.nn.base import method_of
 from image2sphere.so3.grid import (
@@ -110,6 +115,7 @@ class PoseEstimationModule(pl.LightningModule):
         self.skipped_images: dict[str, int] = {}
         self._records: dict[str, list[torch.Tensor]] = {}
         self._seed_base = torch.initial_seed()
+        self._unindexed = 0  # test images without a dataset index seen so far (their tie-break seeds)
         self.run_config: dict | None = None  # the resolved Hydra config, stored in checkpoints
 
     @staticmethod
@@ -159,7 +165,9 @@ class PoseEstimationModule(pl.LightningModule):
         return loss
 
     # ------------------------------------------------------------------ evaluation
-    def _evaluate(self, batch: dict, level: int, spread_level: int | None) -> dict[str, torch.Tensor]:
+    def _evaluate(
+        self, batch: dict, level: int, spread_level: int | None, calibration: bool = False
+    ) -> dict[str, torch.Tensor]:
         output = self(batch["image"], batch.get("class_index"))
         dist = self.output_distribution(output)
         targets, mask = batch["rotations"], batch["mask"]
@@ -172,12 +180,18 @@ class PoseEstimationModule(pl.LightningModule):
             out["error_deg"] = min_angular_error_deg(dist.mode().to(targets.dtype), targets, mask)
             out["loss"] = self.method_loss(output, targets[:, 0], level)
             return out
-        lse, _, argmax = dist.grid_logsumexp_and_max(level)  # [B], [B], [B]
+        if calibration:  # one sweep: log normaliser, argmax, log density and HDR level of every pair
+            pairs = density_pairs(dist, targets, mask, level, self._tie_break(out, mask.shape[1]))
+            ll, argmax = pairs.log_density, pairs.argmax  # [B, M], NaN on padding; [B]
+            out["hdr_counts"] = hdr_coverage_counts(pairs.hdr_level, mask)  # [B, len(HDR_LEVELS)]
+        else:
+            lse, _, argmax = dist.grid_logsumexp_and_max(level)  # [B], [B], [B]
+            ll = log_likelihood_pairs(dist, targets, mask, level, log_normalizer=lse)  # [B, M], NaN on padding
         if self.hparams.refine_mode:
             pred = dist.mode(level, refine=True).to(targets.dtype)
         else:
             pred = so3_healpix_index_to_matrix(argmax, level, dtype=targets.dtype).to(targets.device)
-        ll = log_likelihood_pairs(dist, targets, mask, level, log_normalizer=lse)  # [B, M], NaN on padding
+        ll = ll.to(targets.device)
         log_n = math.log(math.prod(so3_grid_size(level)))
         out.update(
             error_deg=min_angular_error_deg(pred, targets, mask),
@@ -193,6 +207,17 @@ class PoseEstimationModule(pl.LightningModule):
         if spread_level is not None:
             out["spread"] = spread_deg(dist, targets, mask, spread_level)
         return out
+
+    def _tie_break(self, out: dict[str, torch.Tensor], m: int) -> torch.Tensor:
+        """The HDR tie-break uniforms ``(B, m)`` of a test batch: a function of each image's (class, dataset
+        index) only, so every run, batch size and process draws the same; images without an index are
+        numbered in the order the test loop sees them."""
+        seeds = []
+        for c, i in zip(out["class_index"].tolist(), out["index"].tolist(), strict=True):
+            if i < 0:
+                i, self._unindexed = -1 - self._unindexed, self._unindexed + 1
+            seeds.append(stable_seed("test-image", c, i))
+        return tie_break_uniforms(seeds, m)
 
     def _record(self, out: dict[str, torch.Tensor]) -> None:
         for key, value in out.items():
@@ -211,6 +236,7 @@ class PoseEstimationModule(pl.LightningModule):
             ll_count=records.get("ll_count"),
             spread=records.get("spread"),
             ll_exact_sum=records.get("ll_exact_sum"),
+            hdr_counts=records.get("hdr_counts"),
         )
         metrics["loss"] = float(records["loss"].double().mean())
         return metrics
@@ -245,10 +271,12 @@ class PoseEstimationModule(pl.LightningModule):
 
     def test_step(self, batch: dict | None, batch_idx: int) -> None:
         if self._count_skipped(batch, "test"):
-            self._record(self._evaluate(batch, self.hparams.eval_grid_level, self.hparams.spread_grid_level))
+            level, spread_level = self.hparams.eval_grid_level, self.hparams.spread_grid_level
+            self._record(self._evaluate(batch, level, spread_level, calibration=True))
 
     def on_test_epoch_start(self) -> None:
         self.skipped_images.pop("test", None)
+        self._unindexed = 0
 
     def on_test_epoch_end(self) -> None:
         self.test_metrics = self._summarize()

@@ -31,6 +31,7 @@ log = logging.getLogger(__name__)
 TABLE_COLUMNS = (
     ("log_likelihood", "log lik.", "{:9.3f}"),
     ("spread_deg", "spread", "{:8.2f}"),
+    ("calibration_ece", "ECE", "{:6.3f}"),
     ("acc15", "acc@15", "{:7.3f}"),
     ("acc30", "acc@30", "{:7.3f}"),
     ("median_error_deg", "med.err", "{:8.2f}"),
@@ -76,7 +77,7 @@ def is_slurm_requeue(output_dir: Path) -> bool:
 
 def format_metrics_table(metrics: dict[str, float], class_names: list[str]) -> str:
     """Per-class rows and the class mean as a fixed-width text table. Every column is shown; a metric
-    the method does not have (a point regressor's log likelihood and spread) reads ``n/a``."""
+    the method does not have (a point regressor's log likelihood, spread and calibration) reads ``n/a``."""
     columns = TABLE_COLUMNS
     width = max([len(n) for n in class_names] + [len("mean")])
     lines = [" ".join([f"{'class':<{width}}"] + [f"{title:>{len(fmt.format(0.0))}}" for _, title, fmt in columns])]

@@ -193,6 +193,11 @@ def test_calibration_table_from_the_runs_that_have_it(tmp_path):
     assert "| I2S | 0.030 ± 0.014 |" in calibration
     assert "| Zhou et al. 2019 (6D) | n/a |" in calibration
     assert "| Murphy et al. 2021 (IPDF) | — |" in calibration
+    # a density's run without the calibration keys (written before they existed) is not "n/a"
+    make_run(tmp_path, "old", {"model": "ipdf", "dataset": "modelnet10_limited"}, {},
+             accuracy_metrics(0.1, 0.2, 60.0, log_likelihood=1.0))  # fmt: skip
+    text = to_markdown(build_table("table6", LAYOUTS["table6"], find_runs([tmp_path])[0]))
+    assert "| Murphy et al. 2021 (IPDF) | not recorded |" in text.split("Calibration")[1]
 
 
 # ------------------------------------------------------------------------------- unfinished and hostile

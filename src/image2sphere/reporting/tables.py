@@ -82,6 +82,8 @@ class Cell:
     values: list[float] = field(default_factory=list)
     published: float | None = None
     published_std: float | None = None
+    # shown instead of the value when set (e.g. "not recorded")
+    text: str | None = None
 
     @property
     def missing(self) -> bool:
@@ -185,12 +187,12 @@ def build_table(name: str, layout: dict[str, Any], runs: list[Run], dataset: str
         row_cells = []
         for _, cm in cal_keys:
             matched = [r for r in runs if r.matches({**row_match, **cm})]
-            row_cells.append(
-                Cell(
-                    runs=matched,
-                    values=[r.metrics["calibration_ece"] for r in matched if "calibration_ece" in r.metrics],
-                )
+            cell = Cell(
+                runs=matched, values=[r.metrics["calibration_ece"] for r in matched if "calibration_ece" in r.metrics]
             )
+            if cell.not_available and any("log_likelihood" in r.metrics for r in matched):
+                cell.text = "not recorded"  # a density whose runs predate the calibration metrics
+            row_cells.append(cell)
         calibration.append(row_cells)
 
     used_runs = list(used.values())
@@ -224,6 +226,8 @@ def _number(x: float, digits: int, signed: bool = False) -> str:
 
 
 def _ours(cell: Cell, digits: int, missing: str, pm: str) -> str:
+    if cell.text is not None:
+        return cell.text
     if cell.missing:
         return missing
     if cell.not_available:
@@ -297,8 +301,9 @@ def to_markdown(table: FilledTable, unfinished: list | None = None) -> str:
             lines.append(
                 f"| {_md_escape(row['label'])} | " + " | ".join(_ours(c, 3, MISSING_MD, "±") for c in cells) + " |"
             )
-    lines += ["", f"{MISSING_MD}: no finished run; n/a: the method has no such metric; ± the sample standard "
-              "deviation over runs (seeds); difference: ours minus the paper's."]  # fmt: skip
+    lines += ["", f"{MISSING_MD}: no finished run; n/a: the method has no such metric (not recorded: its runs "
+              "have no calibration metrics, written before they existed); ± the sample standard deviation over "
+              "runs (seeds); difference: ours minus the paper's."]  # fmt: skip
     lines += [f"- note: {n}" for n in table.notes]
     for u in unfinished or []:
         lines.append(f"- not finished: `{u.path}`: {u.reason}")

@@ -244,7 +244,8 @@ def test_cli_refuses_to_overwrite_and_names_the_files(tmp_path, capsys):
     md.write_text("my edits")
     capsys.readouterr()
     assert tables_main([str(sweep)]) == 2
-    assert "table7.md" in capsys.readouterr().err and "--force" in capsys.readouterr().err + "--force"
+    err = capsys.readouterr().err
+    assert "table7.md" in err and "--force" in err
     assert md.read_text() == "my edits"
     assert tables_main([str(sweep), "--force"]) == 0
     assert md.read_text().startswith("### Table 7")

@@ -317,8 +317,33 @@ def test_every_hparams_search_composes(tmp_path, search):
     params = cfg.hydra.sweeper.params
     assert cfg.hydra.mode.name == "MULTIRUN" and params
     for key, values in params.items():
-        for value in str(values).split(","):  # every swept value composes
+        for value in sweep_values(cfg, key, values):  # every swept value (an Optuna range's ends) composes
             compose_cfg(tmp_path, [f"hparams_search={search}", f"{key}={value}"])
+
+
+def sweep_values(cfg: DictConfig, key: str, values) -> list:
+    """The values a sweeper tries for ``key``: a basic sweep's list; for Optuna, the choices or the ends
+    of the range, as the Optuna sweeper parses them."""
+    if not str(cfg.hydra.sweeper._target_).endswith("OptunaSweeper"):
+        return str(values).split(",")
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra_plugins.hydra_optuna_sweeper._impl import create_optuna_distribution_from_override
+
+    dist = create_optuna_distribution_from_override(OverridesParser.create().parse_override(f"{key}={values}"))
+    return list(dist.choices) if hasattr(dist, "choices") else [dist.low, dist.high]
+
+
+def test_optuna_search_optimises_a_metric_the_runs_write(tmp_path):
+    cfg = compose_cfg(tmp_path, ["hparams_search=optuna_i2s"])
+    assert cfg.optimized_metric == "log_likelihood" and cfg.hydra.sweeper.direction == "maximize"
+    assert set(cfg.hydra.sweeper.params) == {
+        "model.optimizer.lr", "model.optimizer.weight_decay", "lmax", "model.net.sphere_channels",
+        "model.net.so3_channels", "train_grid_level",
+    }  # fmt: skip
+    assert sweep_values(cfg, "model.optimizer.lr", cfg.hydra.sweeper.params["model.optimizer.lr"]) == [1e-4, 1e-2]
+    assert str(cfg.hydra.sweeper.storage).startswith("sqlite:///") and cfg.hydra.sweeper.storage.endswith(
+        "/logs/optuna/optuna_i2s.db"
+    )
 
 
 # what each experiment must reproduce (paper section 5 and appendix): dataset module, its key

@@ -7,9 +7,9 @@ from typing import Any
 
 from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
-from image2sphere.training.pipeline import is_slurm_requeue
+from image2sphere.training.pipeline import is_secondary_rank, is_slurm_requeue
 
 __all__ = ["RefuseExistingOutputDir"]
 
@@ -21,6 +21,10 @@ class RefuseExistingOutputDir(Callback):
     ``hydra.run.dir`` pointing at an earlier run would overwrite that run's saved config. The
     default directories are unique per run (date, time and process id) and never trigger this.
     The process exits with status 1 and a message naming the directory.
+
+    The other ranks of a distributed run (:func:`~image2sphere.training.pipeline.is_secondary_rank`:
+    the processes Lightning starts for ``trainer=ddp``, the tasks of a multi-task SLURM job) join the
+    directory rank 0 made: they pass, and Hydra does not write their ``.hydra/`` over rank 0's.
     """
 
     def _check(self, config: DictConfig, key: str) -> None:
@@ -37,6 +41,10 @@ class RefuseExistingOutputDir(Callback):
             )
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        if is_secondary_rank():
+            with open_dict(config):
+                config.hydra.output_subdir = None  # rank 0 saves the run's .hydra/
+            return
         self._check(config, "hydra.run.dir")
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:

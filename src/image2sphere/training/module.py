@@ -242,17 +242,31 @@ class PoseEstimationModule(pl.LightningModule):
         return metrics
 
     def _gather(self, records: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        """Records of all processes, each image once (distributed samplers pad with repeats)."""
+        """Records of all processes, in the order of (class, dataset index), each image once.
+
+        In a distributed run every process scores its own share of the test set; the shares are
+        gathered here on every process. Our samplers give each image to one process, but a sampler that
+        pads the shares with repeats (torch's ``DistributedSampler``) would score some twice: an image
+        (class, index) seen more than once is kept once. Sorting makes the sums over images, and so the
+        metrics, independent of how the images were shared out, equal to a single process's up to each
+        image's own floating-point rounding.
+        """
         trainer = self._trainer
-        if trainer is None or trainer.world_size == 1 or not torch.distributed.is_initialized():
+        distributed = trainer is not None and trainer.world_size > 1 and torch.distributed.is_initialized()
+        if distributed:
+            gathered: list = [None] * trainer.world_size
+            torch.distributed.all_gather_object(gathered, records)
+            records = {k: torch.cat([g[k] for g in gathered]) for k in records}
+        index = records["index"].long()
+        if len(index) == 0 or bool((index < 0).any()):  # images without a dataset index: kept as they came
             return records
-        gathered: list = [None] * trainer.world_size
-        torch.distributed.all_gather_object(gathered, records)
-        merged = {k: torch.cat([g[k] for g in gathered]) for k in records}
-        key = merged["class_index"].long() * (int(merged["index"].max()) + 2) + merged["index"].long()
-        _, first = np.unique(key.numpy(), return_index=True)
-        first = torch.from_numpy(np.sort(first))
-        return {k: v[first] for k, v in merged.items()}
+        key = records["class_index"].long() * (int(index.max()) + 1) + index
+        if distributed:  # the first occurrence of each (class, index), in key order
+            _, order = np.unique(key.numpy(), return_index=True)
+        else:
+            order = np.argsort(key.numpy(), kind="stable")
+        order = torch.from_numpy(order)
+        return {k: v[order] for k, v in records.items()}
 
     def on_train_epoch_end(self) -> None:
         if self.skipped_images.get("train"):

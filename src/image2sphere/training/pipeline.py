@@ -16,15 +16,16 @@ import time
 from pathlib import Path
 
 import lightning.pytorch as pl
+import torch
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from image2sphere.training.checkpoint import load_checkpoint
 from image2sphere.training.checkpointing import TrainingInterrupted
 from image2sphere.training.module import NonFiniteLossError
 from image2sphere.training.run_config import check_train_config, describe_run, protocol_settings, resume_config
 
-__all__ = ["format_metrics_table", "register_resolvers", "train"]
+__all__ = ["format_metrics_table", "is_secondary_rank", "register_resolvers", "train"]
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +47,26 @@ def slurm_job_id() -> str | None:
     return os.environ.get("SLURM_JOB_ID") or None
 
 
+def is_secondary_rank() -> bool:
+    """True in a process that a distributed launcher started as one of the other ranks of a run (not rank 0).
+
+    The ranks of one run share its directory, which rank 0 creates: Lightning starts the other local
+    processes of ``strategy=ddp`` again with ``LOCAL_RANK`` set (and ``hydra.run.dir`` pointing at rank
+    0's directory), ``srun`` starts every task of a SLURM job with its ``SLURM_PROCID`` (all in
+    ``runs/slurm_<job id>``), torchrun sets ``RANK``. Read from the environment, before any process group
+    exists.
+    """
+    slurm_tasks = os.environ.get("SLURM_NTASKS", "1")
+    variables = ["RANK", "LOCAL_RANK", "NODE_RANK", "GROUP_RANK"]
+    if slurm_tasks.isdigit() and int(slurm_tasks) > 1:
+        variables.append("SLURM_PROCID")
+    for name in variables:
+        value = os.environ.get(name, "").strip()
+        if value.isdigit() and int(value) > 0:
+            return True
+    return False
+
+
 def _run_id(timestamp: str) -> str:
     job = slurm_job_id()
     return f"slurm_{job}" if job else f"{timestamp}_{os.getpid()}"
@@ -56,23 +77,44 @@ def register_resolvers() -> None:
 
     ``${pid:}``: this process id. ``${run_id:<timestamp>}``: the name of a run directory,
     ``<timestamp>_<pid>`` (unique per run), or ``slurm_<job id>`` inside a SLURM job, so that a job
-    requeued by SLURM finds its own directory and Lightning's ``hpc_ckpt_*.ckpt`` again.
+    requeued by SLURM finds its own directory and its checkpoints again. ``${sqlite_storage:<file>}``:
+    see :func:`sqlite_storage`.
     """
     if not OmegaConf.has_resolver("pid"):
         OmegaConf.register_new_resolver("pid", lambda: os.getpid(), use_cache=True)
     if not OmegaConf.has_resolver("run_id"):
         OmegaConf.register_new_resolver("run_id", _run_id, use_cache=True)
+    if not OmegaConf.has_resolver("sqlite_storage"):
+        OmegaConf.register_new_resolver("sqlite_storage", sqlite_storage)
+
+
+def sqlite_storage(path: str) -> str:
+    """``${sqlite_storage:<file>}``: the SQLAlchemy URL of an SQLite database at ``file`` (an Optuna study's
+    storage), its folder created so that the first trial can write it."""
+    file = Path(path).expanduser().resolve()
+    file.parent.mkdir(parents=True, exist_ok=True)
+    return f"sqlite:///{file}"
 
 
 def is_slurm_requeue(output_dir: Path) -> bool:
-    """True for a SLURM job that was requeued and left Lightning's requeue checkpoint in ``output_dir``."""
+    """True for a SLURM job that was requeued (or pre-empted and requeued, or resubmitted by submitit after
+    its time limit: the same job id, ``SLURM_RESTART_COUNT > 0``) and left a checkpoint in ``output_dir``:
+    Lightning's requeue checkpoint ``hpc_ckpt_*.ckpt`` or the run's ``checkpoints/last.ckpt``."""
     restarts = os.environ.get("SLURM_RESTART_COUNT", "0")
     return (
         slurm_job_id() is not None
         and restarts.isdigit()
         and int(restarts) > 0
-        and any(output_dir.glob("hpc_ckpt_*.ckpt"))
+        and (any(output_dir.glob("hpc_ckpt_*.ckpt")) or (output_dir / "checkpoints" / "last.ckpt").is_file())
     )
+
+
+def requeue_checkpoint(output_dir: Path) -> str | None:
+    """The checkpoint a requeued SLURM job continues from when Lightning's own does not apply: the run's
+    ``last.ckpt`` when there is no ``hpc_ckpt_*.ckpt`` (which Lightning finds by itself)."""
+    if not is_slurm_requeue(output_dir) or any(output_dir.glob("hpc_ckpt_*.ckpt")):
+        return None
+    return str(output_dir / "checkpoints" / "last.ckpt")
 
 
 def format_metrics_table(metrics: dict[str, float], class_names: list[str]) -> str:
@@ -126,16 +168,19 @@ def train(cfg: DictConfig) -> dict[str, float]:
     check_train_config(cfg)
     log.info(describe_run(cfg, *_hydra_choices(resumed=ckpt_path is not None)))
     output_dir = Path(cfg.paths.output_dir)
-    requeued = is_slurm_requeue(output_dir)  # Lightning resumes it from its hpc_ckpt_*.ckpt
+    requeued = is_slurm_requeue(output_dir)  # continues from its hpc_ckpt_*.ckpt or last.ckpt
+    # The other ranks of a distributed run share rank 0's directory: rank 0 has checked it and alone
+    # writes the files of the run (resumed_config.yaml, metrics.json; Lightning saves checkpoints on rank 0).
+    secondary = is_secondary_rank()
     for existing in (output_dir / "checkpoints", output_dir / "metrics.json"):
-        if requeued and existing.name == "checkpoints":
+        if secondary or (requeued and existing.name == "checkpoints"):
             continue
         if existing.exists() and (existing.is_file() or any(existing.iterdir())):
             raise FileExistsError(
                 f"{existing} already exists: another run used {output_dir}. Runs never share a directory; "
                 "choose another hydra.run.dir (or leave it at its default, which is unique per run)"
             )
-    if ckpt_path is not None:
+    if ckpt_path is not None and not secondary:
         output_dir.mkdir(parents=True, exist_ok=True)
         with open(output_dir / "resumed_config.yaml", "x") as f:  # what this run really uses
             f.write(OmegaConf.to_yaml(cfg))
@@ -154,15 +199,21 @@ def train(cfg: DictConfig) -> dict[str, float]:
     loggers = [] if cfg.trainer.get("fast_dev_run") else _instantiate_list(cfg.get("logger"), "logger")
     if not loggers:  # the learning-rate monitor needs a logger to write to
         callbacks = [c for c in callbacks if not isinstance(c, pl.callbacks.LearningRateMonitor)]
-    trainer: pl.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
+    trainer: pl.Trainer = instantiate(_trainer_config(cfg.trainer), callbacks=callbacks, logger=loggers or False)
     for logger in loggers:
         logger.log_hyperparams(model.run_config)
 
     timings: dict[str, float] = {}
+    fit_ckpt = ckpt_path
+    if requeued and ckpt_path is None:
+        # the same job again (same config, same directory): it continues from its own last checkpoint
+        fit_ckpt = requeue_checkpoint(output_dir)
+        if fit_ckpt is not None:
+            log.info("Requeued SLURM job %s: continuing from %s", slurm_job_id(), fit_ckpt)
     if cfg.train:
         start = time.perf_counter()
         try:
-            trainer.fit(model=model, datamodule=datamodule, ckpt_path=ckpt_path)
+            trainer.fit(model=model, datamodule=datamodule, ckpt_path=fit_ckpt)
         except TrainingInterrupted as e:
             _finish_loggers(loggers)
             _exit_interrupted(e)
@@ -197,6 +248,23 @@ def train(cfg: DictConfig) -> dict[str, float]:
             print(f"Run directory: {output_dir}\n")
     _finish_loggers(loggers)
     return {**metrics, **timings}
+
+
+def _trainer_config(trainer: DictConfig) -> DictConfig:
+    """``trainer`` as given, except that ``sync_batchnorm`` is turned off (with a warning) on the CPU: torch
+    synchronises batch norm only between CUDA processes, and ``trainer=ddp`` asks for it."""
+    if not trainer.get("sync_batchnorm"):
+        return trainer
+    accelerator = str(trainer.get("accelerator", "auto"))
+    if accelerator == "cpu" or (accelerator == "auto" and not torch.cuda.is_available()):
+        log.warning(
+            "trainer.sync_batchnorm=true needs CUDA devices (torch's SyncBatchNorm); on the CPU each process "
+            "normalises over its own batch (set trainer.sync_batchnorm=false to silence this)"
+        )
+        trainer = trainer.copy()
+        with open_dict(trainer):
+            trainer.sync_batchnorm = False
+    return trainer
 
 
 def _hydra_choices(resumed: bool) -> tuple[dict[str, str] | None, list[str], dict[str, str] | None]:

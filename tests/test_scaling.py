@@ -1,0 +1,304 @@
+"""Scaling out: data-parallel runs whose metrics equal one process's, the cluster and local launchers, the
+Optuna search, and requeued SLURM jobs that continue from their own checkpoint.
+
+The DDP runs are real multi-process launches (Lightning starts the second rank as a new process on the
+CPU, gloo backend), on a test set whose size is not a multiple of 2 x batch, so one rank's last batch is
+short and torch's padding sampler would have scored an image twice.
+"""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import torch
+import yaml
+
+from image2sphere.training.pipeline import is_secondary_rank, is_slurm_requeue, requeue_checkpoint, sqlite_storage
+from test_train_entry import ENV, REPO, read_metrics, run_train, train_command
+
+TEST_PER_SHAPE = 7  # 2 shapes: 14 test images; 2 ranks x batch 4 = 8 does not divide 14
+DDP = ["trainer=ddp", "trainer.devices=2", f"dataset.render.test={TEST_PER_SHAPE}", "dataset.batch_size=4"]
+# float32 per-image values depend (in their last bits) on which images share a batch: the ranks batch
+# other images together than one process does
+REL_TOL = 1e-5
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("data")
+
+
+def run_eval(args: list[str], log_dir: Path) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "src.eval", f"paths.log_dir={log_dir}", "logger=none", "plots=0", *args]
+    proc = subprocess.run(cmd, cwd=REPO, env=ENV, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, f"{' '.join(cmd)} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
+    return proc
+
+
+def assert_same_metrics(a: dict, b: dict) -> None:
+    keys = {k for k in a if not k.endswith("_seconds") and isinstance(a[k], float)}
+    assert keys <= set(b), sorted(keys - set(b))
+    for k in sorted(keys):
+        if k.startswith(("acc", "n_images", "hdr_coverage", "skipped")):
+            assert a[k] == b[k], (k, a[k], b[k])  # counts: exactly equal
+        else:
+            assert math.isclose(a[k], b[k], rel_tol=REL_TOL, abs_tol=1e-6), (k, a[k], b[k])
+
+
+# ------------------------------------------------------------------ DDP: the real two-process launch
+@pytest.fixture(scope="module")
+def ddp_run(tmp_path_factory, data_dir) -> tuple[Path, subprocess.CompletedProcess]:
+    run = tmp_path_factory.mktemp("ddp") / "run"
+    proc = run_train([*DDP, "logger=csv", "trainer.max_epochs=1", f"hydra.run.dir={run}"], data_dir, run.parent)
+    return run, proc
+
+
+@pytest.mark.slow
+def test_ddp_run_trains_and_tests_every_image_once_on_two_processes(ddp_run):
+    run, proc = ddp_run
+    out = proc.stdout + proc.stderr
+    assert "GLOBAL_RANK: 1, MEMBER: 2/2" in out  # a second process really joined
+    assert "sync_batchnorm=true needs CUDA devices" in out  # trainer=ddp's SyncBatchNorm, off on the CPU
+    metrics = read_metrics(run)
+    assert metrics["n_images"] == 2 * TEST_PER_SHAPE
+    assert out.count("Test metrics (train") == 1  # printed, and metrics.json written, by rank 0 only
+    assert sorted(p.name for p in (run / ".hydra").iterdir()) == ["config.yaml", "hydra.yaml", "overrides.yaml"]
+    assert (run / "checkpoints" / "last.ckpt").is_file()
+
+
+@pytest.mark.slow
+def test_ddp_metrics_equal_one_process_on_the_same_weights(ddp_run, tmp_path):
+    run, _ = ddp_run
+    ckpt = run / "checkpoints" / "last.ckpt"
+    one = tmp_path / "one"
+    run_eval([f"ckpt_path={ckpt}", "eval_grid_level=3", f"hydra.run.dir={one}"], tmp_path)
+    single = read_metrics(one)
+    assert single["n_images"] == 2 * TEST_PER_SHAPE
+    assert_same_metrics(read_metrics(run), single)  # the test at the end of the DDP run
+    two = tmp_path / "two"
+    run_eval(
+        [f"ckpt_path={ckpt}", "eval_grid_level=3", f"hydra.run.dir={two}", *DDP[:2], "trainer.accelerator=cpu"],
+        tmp_path,
+    )
+    assert_same_metrics(read_metrics(two), single)  # src.eval on two processes
+
+
+@pytest.mark.slow
+def test_ddp_run_resumes_from_its_checkpoint_on_two_processes(ddp_run, tmp_path, data_dir):
+    run, _ = ddp_run
+    resumed = tmp_path / "resumed"
+    args = [*DDP, "logger=none", "trainer.max_epochs=2", f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}"]
+    proc = run_train([*args, f"hydra.run.dir={resumed}"], data_dir, tmp_path)
+    assert "Restored all states from the checkpoint" in proc.stdout + proc.stderr
+    saved = torch.load(resumed / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    first = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    # each rank trains on its half of the epoch: the steps per epoch are those of one rank's share
+    assert saved["epoch"] == 1 and saved["global_step"] == 2 * first["global_step"]
+    assert (resumed / "resumed_config.yaml").is_file()  # written once, by rank 0 (a second "x" open would fail)
+    assert read_metrics(resumed)["n_images"] == 2 * TEST_PER_SHAPE
+
+
+def test_gathered_records_are_deduplicated_and_ordered_like_one_process(monkeypatch):
+    """A padding sampler (torch's DistributedSampler) repeats images on the last rank: kept once."""
+    from image2sphere.training.module import PoseEstimationModule
+
+    def shard(classes, indices):
+        return {
+            "class_index": torch.tensor(classes),
+            "index": torch.tensor(indices),
+            "error_deg": torch.tensor([10.0 * c + i for c, i in zip(classes, indices, strict=True)]),
+        }
+
+    ranks = [shard([0, 1, 0], [0, 0, 2]), shard([0, 1, 0], [1, 1, 0])]  # (0, 0) again: padding
+
+    def all_gather_object(out, obj):
+        out[:] = ranks
+
+    monkeypatch.setattr(torch.distributed, "is_initialized", lambda: True)
+    monkeypatch.setattr(torch.distributed, "all_gather_object", all_gather_object)
+    module = SimpleNamespace(_trainer=SimpleNamespace(world_size=2))
+    merged = PoseEstimationModule._gather(module, ranks[0])
+    assert merged["class_index"].tolist() == [0, 0, 0, 1, 1]
+    assert merged["index"].tolist() == [0, 1, 2, 0, 1]
+    assert merged["error_deg"].tolist() == [0.0, 1.0, 2.0, 10.0, 11.0]
+    # one process: the same order, nothing dropped (a repeat would be the dataset's own)
+    module = SimpleNamespace(_trainer=SimpleNamespace(world_size=1))
+    single = PoseEstimationModule._gather(module, shard([1, 0, 0, 1, 0], [1, 2, 0, 0, 1]))
+    assert single["index"].tolist() == [0, 1, 2, 0, 1] and single["class_index"].tolist() == [0, 0, 0, 1, 1]
+
+
+# ------------------------------------------------------------------ ranks and their run directory
+RANK_VARIABLES = ("RANK", "LOCAL_RANK", "NODE_RANK", "GROUP_RANK", "SLURM_PROCID", "SLURM_NTASKS")
+
+
+@pytest.mark.parametrize(
+    "env, secondary",
+    [
+        ({}, False),
+        ({"LOCAL_RANK": "0", "NODE_RANK": "0"}, False),
+        ({"LOCAL_RANK": "1"}, True),  # the processes Lightning starts for trainer=ddp
+        ({"LOCAL_RANK": "0", "NODE_RANK": "1"}, True),
+        ({"RANK": "3"}, True),  # torchrun
+        ({"SLURM_PROCID": "1", "SLURM_NTASKS": "8"}, True),  # srun's tasks of a multi-node job
+        ({"SLURM_PROCID": "0", "SLURM_NTASKS": "8"}, False),
+        ({"SLURM_PROCID": "3", "SLURM_NTASKS": "1"}, False),  # one task: not a DDP rank
+    ],
+)
+def test_secondary_ranks_are_read_from_the_launchers_variables(monkeypatch, env, secondary):
+    for name in RANK_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    assert is_secondary_rank() is secondary
+
+
+def test_existing_run_directory_is_refused_for_a_new_run_and_joined_by_a_rank(tmp_path):
+    """The guard against writing into an earlier run's directory, under the environment of rank 0 and of rank 1."""
+    existing = tmp_path / "run"
+    (existing / ".hydra").mkdir(parents=True)
+    (existing / ".hydra" / "config.yaml").write_text("earlier: run\n")
+    cmd = [sys.executable, "-m", "src.train", "logger=none", f"hydra.run.dir={existing}", "train=false", "test=false"]
+    env = {k: v for k, v in ENV.items() if k not in RANK_VARIABLES}
+    refused = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert refused.returncode == 1 and "already holds files" in refused.stderr
+    rank1 = subprocess.run(cmd, cwd=REPO, env={**env, "LOCAL_RANK": "1"}, capture_output=True, text=True, timeout=300)
+    assert "already holds files" not in rank1.stderr
+    assert (existing / ".hydra" / "config.yaml").read_text() == "earlier: run\n"  # rank 0's config kept
+    assert sorted(p.name for p in (existing / ".hydra").iterdir()) == ["config.yaml"]
+
+
+# ------------------------------------------------------------------ SLURM requeue from last.ckpt
+SLURM = {"SLURM_JOB_ID": "5151", "SLURM_NTASKS": "1", "SLURM_JOB_NAME": "i2s", "SLURM_PROCID": "0",
+         "SLURM_LOCALID": "0", "SLURM_NODEID": "0", "SLURM_NODELIST": "localhost"}  # fmt: skip
+
+
+def test_requeue_checkpoint_is_the_runs_last_checkpoint_only_in_a_restarted_slurm_job(tmp_path, monkeypatch):
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "last.ckpt").write_bytes(b"x")
+    for name, value in SLURM.items():
+        monkeypatch.setenv(name, value)
+    monkeypatch.delenv("SLURM_RESTART_COUNT", raising=False)
+    assert not is_slurm_requeue(tmp_path) and requeue_checkpoint(tmp_path) is None  # a first start
+    monkeypatch.setenv("SLURM_RESTART_COUNT", "2")
+    assert is_slurm_requeue(tmp_path) and requeue_checkpoint(tmp_path) == str(tmp_path / "checkpoints" / "last.ckpt")
+    (tmp_path / "hpc_ckpt_1.ckpt").write_bytes(b"x")
+    assert is_slurm_requeue(tmp_path) and requeue_checkpoint(tmp_path) is None  # Lightning's own applies
+    monkeypatch.delenv("SLURM_JOB_ID")
+    assert not is_slurm_requeue(tmp_path)  # not in SLURM: a restart count means nothing
+
+
+@pytest.mark.slow
+def test_requeued_slurm_job_continues_from_last_ckpt_in_its_own_directory(tmp_path, data_dir):
+    """A job stopped by its time limit (submitit requeues it on SIGUSR2) or pre-empted starts again with
+    the same command, job id and directory and SLURM_RESTART_COUNT > 0: it continues from last.ckpt."""
+    logs = tmp_path / "logs"
+    env = {**ENV, **SLURM}
+
+    def train(args: list[str], env: dict) -> subprocess.CompletedProcess:
+        cmd = train_command(["logger=none", *args], data_dir, logs)
+        proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
+        assert proc.returncode == 0, proc.stderr[-4000:]
+        return proc
+
+    train(["trainer.max_epochs=1", "test=false"], env)  # the first start: stopped after epoch 0
+    run = logs / "train" / "runs" / "slurm_5151"
+    assert (run / "checkpoints" / "last.ckpt").is_file() and not (run / "metrics.json").exists()
+    proc = train(["trainer.max_epochs=2"], {**env, "SLURM_RESTART_COUNT": "1"})
+    out = proc.stdout + proc.stderr
+    assert f"continuing from {run / 'checkpoints' / 'last.ckpt'}" in out
+    assert "Restored all states from the checkpoint" in out
+    saved = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    assert saved["epoch"] == 1 and (run / "metrics.json").is_file()
+
+
+# ------------------------------------------------------------------ launchers
+@pytest.mark.slow
+def test_local_parallel_launcher_runs_a_two_job_sweep_in_two_run_directories(tmp_path, data_dir):
+    logs = tmp_path / "logs"
+    proc = run_train(
+        ["-m", "hydra/launcher=local_parallel", "seed=0,1", "trainer.max_epochs=1", "logger=none"], data_dir, logs
+    )
+    sweeps = list((logs / "train" / "multiruns").iterdir())
+    assert len(sweeps) == 1, proc.stdout[-2000:]
+    jobs = sorted(p.name for p in sweeps[0].iterdir() if p.name.isdigit())
+    assert jobs == ["0", "1"]
+    seeds = [yaml.safe_load((sweeps[0] / j / ".hydra" / "config.yaml").read_text())["seed"] for j in jobs]
+    assert seeds == [0, 1]
+    metrics = [read_metrics(sweeps[0] / j) for j in jobs]
+    assert all(m["n_images"] > 0 for m in metrics)
+    assert metrics[0]["log_likelihood"] != metrics[1]["log_likelihood"]  # two seeds, two trained networks
+    assert list((sweeps[0] / ".submitit").iterdir())  # submitit ran them (its logs and pickles)
+
+
+def test_slurm_launcher_renders_the_sbatch_parameters_it_submits(tmp_path):
+    """The real submit path, with a stand-in `sbatch` that keeps the script and stops the launch."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    sbatch = bin_dir / "sbatch"
+    sbatch.write_text(f'#!/bin/sh\nfor a in "$@"; do cp "$a" {tmp_path}/job.sh 2>/dev/null; done\nexit 3\n')
+    sbatch.chmod(0o755)
+    (bin_dir / "srun").write_text("#!/bin/sh\nexit 0\n")  # submitit looks for srun to know it is on SLURM
+    (bin_dir / "srun").chmod(0o755)
+    cmd = [
+        sys.executable, "-m", "src.train", "-m", "hydra/launcher=slurm", f"paths.log_dir={tmp_path / 'logs'}",
+        "hydra.launcher.partition=gpu", "hydra.launcher.nodes=2", "hydra.launcher.gpus_per_node=4",
+        "hydra.launcher.account=proj1", "hydra.launcher.timeout_min=600", "hydra.launcher.mem_gb=120",
+        "hydra.launcher.array_parallelism=3", "trainer=ddp", "trainer.devices=4", "trainer.num_nodes=2",
+        "seed=0,1,2,3",
+    ]  # fmt: skip
+    env = {**ENV, "PATH": f"{bin_dir}:{ENV['PATH']}"}
+    proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode != 0  # our sbatch refused to queue it
+    script = (tmp_path / "job.sh").read_text()
+    for line in [
+        "#SBATCH --partition=gpu",
+        "#SBATCH --nodes=2",
+        "#SBATCH --gpus-per-node=4",
+        "#SBATCH --ntasks-per-node=4",  # one process per GPU: the ranks of the DDP run
+        "#SBATCH --cpus-per-task=8",
+        "#SBATCH --mem=120GB",
+        "#SBATCH --time=600",
+        "#SBATCH --account=proj1",
+        "#SBATCH --array=0-3%3",  # 4 jobs, at most 3 at once
+        "#SBATCH --signal=USR2@120",  # requeued before the time limit
+    ]:
+        assert line in script, (line, script)
+    assert "srun" in script and "submitit" in script
+
+
+# ------------------------------------------------------------------ Optuna
+@pytest.mark.slow
+def test_optuna_search_reports_the_best_trial_and_continues_the_stored_study(tmp_path, data_dir):
+    logs = tmp_path / "logs"
+    args = ["hparams_search=optuna_i2s", "trainer.fast_dev_run=true", "logger=none", "model.net.sphere_channels=16"]
+    proc = run_train([*args, "hydra.sweeper.n_trials=2"], data_dir, logs)
+    sweep = next((logs / "train" / "multiruns").iterdir())
+    results = yaml.safe_load((sweep / "optimization_results.yaml").read_text())
+    values = [read_metrics(sweep / j)["log_likelihood"] for j in ("0", "1")]
+    assert results["best_value"] == pytest.approx(max(values))  # direction: maximize
+    assert "Best value" in proc.stdout + proc.stderr
+    best = sweep / str(values.index(max(values))) / ".hydra" / "overrides.yaml"
+    chosen = yaml.safe_load(best.read_text())
+    (lr,) = [float(o.split("=", 1)[1]) for o in chosen if o.startswith("model.optimizer.lr=")]
+    assert lr == pytest.approx(results["best_params"]["model.optimizer.lr"])  # the best trial's own settings
+    assert "lmax" not in results["best_params"]  # fixed on the command line (TINY): not searched
+    db = logs / "optuna" / "optuna_i2s.db"
+    assert db.is_file()
+    # the same command again continues the study kept in the database
+    time.sleep(1.1)  # a new sweep directory (named to the second)
+    run_train([*args, "hydra.sweeper.n_trials=1"], data_dir, logs)
+    import optuna
+
+    study = optuna.load_study(study_name="optuna_i2s", storage=f"sqlite:///{db}")
+    assert len(study.trials) == 3 and all(t.state.name == "COMPLETE" for t in study.trials)
+
+
+def test_sqlite_storage_creates_its_folder(tmp_path):
+    url = sqlite_storage(str(tmp_path / "a" / "b" / "study.db"))
+    assert url == f"sqlite:///{tmp_path / 'a' / 'b' / 'study.db'}" and (tmp_path / "a" / "b").is_dir()

@@ -8,6 +8,7 @@ short and torch's padding sampler would have scored an image twice.
 
 from __future__ import annotations
 
+import inspect
 import math
 import subprocess
 import sys
@@ -131,6 +132,63 @@ def test_gathered_records_are_deduplicated_and_ordered_like_one_process(monkeypa
     module = SimpleNamespace(_trainer=SimpleNamespace(world_size=1))
     single = PoseEstimationModule._gather(module, shard([1, 0, 0, 1, 0], [1, 2, 0, 0, 1]))
     assert single["index"].tolist() == [0, 1, 2, 0, 1] and single["class_index"].tolist() == [0, 0, 0, 1, 1]
+
+
+# ------------------------------------------------------------------ the samplers' shares
+@pytest.mark.parametrize("n", [14, 15, 1])
+def test_training_shares_cover_the_epochs_permutation_and_resume_within_each_share(n):
+    from image2sphere.data.common import EpochShuffleSampler
+
+    one = EpochShuffleSampler(n, seed=3)
+    one.set_epoch(2)
+    order = list(one)
+    shares = []
+    for rank in range(2):
+        sampler = EpochShuffleSampler(n, seed=3, num_replicas=2, rank=rank)
+        sampler.set_epoch(2)
+        shares.append(list(sampler))
+        assert len(sampler) == len(shares[-1]) == math.ceil(n / 2)  # as many steps on every rank
+    padded = order + order[: 2 * math.ceil(n / 2) - n]  # the permutation's first indices repeated
+    assert [i for pair in zip(*shares, strict=True) for i in pair] == padded  # interleaved: the same order
+    assert set(shares[0]) | set(shares[1]) == set(range(n))
+    for rank in range(2):  # a checkpoint after k steps of batch 2 on each rank: each skips its own 2k
+        resumed = EpochShuffleSampler(n, seed=3, resume=(2, 2), num_replicas=2, rank=rank)
+        resumed.set_epoch(2)
+        assert list(resumed) == shares[rank][2:]
+        resumed.set_epoch(3)  # later epochs are whole
+        assert len(list(resumed)) == math.ceil(n / 2)
+
+
+def test_evaluation_shares_score_every_image_once():
+    from image2sphere.data.common import ShardSampler
+
+    shares = [list(ShardSampler(15, 2, rank)) for rank in range(2)]
+    assert sorted(shares[0] + shares[1]) == list(range(15)) and not set(shares[0]) & set(shares[1])
+    assert [len(s) for s in shares] == [8, 7]  # off by one, never padded
+    with pytest.raises(ValueError, match="rank"):
+        ShardSampler(15, 2, 2)
+
+
+def test_data_module_gives_each_rank_its_share_and_lightning_keeps_our_samplers(tmp_path):
+    from lightning.pytorch.trainer.connectors.data_connector import _DataConnector
+    from torch.utils.data import DistributedSampler
+
+    from image2sphere.data.common import EpochShuffleSampler, PoseDataModule, ShardSampler
+
+    module = PoseDataModule()
+    module.batch_size, module.num_workers, module.pin_memory, module.seed = 4, 0, False, 0
+    module.data_train = module.data_test = list(range(15))
+    module.trainer = SimpleNamespace(world_size=2, global_rank=1)
+    train, test = module.train_dataloader().sampler, module.test_dataloader().sampler
+    assert isinstance(train, EpochShuffleSampler) and (train.num_replicas, train.rank) == (2, 1)
+    assert isinstance(test, ShardSampler) and list(test) == list(range(1, 15, 2))
+    # Lightning replaces a loader's sampler only when it is not a DistributedSampler already
+    assert isinstance(train, DistributedSampler) and isinstance(test, DistributedSampler)
+    assert "isinstance(dataloader.sampler, DistributedSampler)" in inspect.getsource(
+        _DataConnector._requires_distributed_sampler
+    )
+    module.trainer = SimpleNamespace(world_size=1, global_rank=0)
+    assert module.test_dataloader().sampler.__class__.__name__ == "SequentialSampler"
 
 
 # ------------------------------------------------------------------ ranks and their run directory

@@ -26,10 +26,13 @@ Conventions
 * The matrix ``R`` of the stored quaternion is used as is (no transpose): ``x_camera = R @ x_object``,
   the convention of the whole project.
 * The views of a split are ordered by sorted view id; ``index`` is the row in that order.
-* The LMDB environment is opened lazily, read-only and without locking, once per process (a
-  DataLoader worker opens its own), through a per-process registry because ``lmdb`` refuses to open
-  one environment twice in a process. :func:`close_lmdb_environments` closes them (needed before
-  writing to an environment this process has read).
+* The LMDB environment is opened lazily, read-only and without locking, once per process, through
+  a per-process registry because ``lmdb`` refuses to open one environment twice in a process. An
+  environment is never used across processes: a DataLoader worker started with ``fork`` closes the
+  copies it inherited (:meth:`ModelNet10Dataset.init_worker`, the loaders' ``worker_init_fn``; and
+  again on first read if a loader without it forked) and opens its own; a dataset pickled to a
+  ``spawn`` or ``forkserver`` worker carries no environment. :func:`close_lmdb_environments` closes
+  them (needed before writing to an environment this process has read).
 * No data augmentation (the paper does none on this dataset).
 
 Items
@@ -80,6 +83,7 @@ __all__ = [
     "ModelNet10Dataset",
     "ModelNet10Labels",
     "MissingRecordError",
+    "close_inherited_lmdb_environments",
     "close_lmdb_environments",
     "load_modelnet10_labels",
     "parse_view_id",
@@ -166,6 +170,16 @@ def _environment(path: Path) -> lmdb.Environment:
     env = open_lmdb(key, REMEDY)  # refuses a truncated data.mdb (reading one would end in SIGBUS)
     _ENVIRONMENTS[key] = (pid, env)
     return env
+
+
+def close_inherited_lmdb_environments() -> None:
+    """Close the environments this process inherited through ``fork`` (opened by its parent); its own
+    stay open. Run in every DataLoader worker at start (:meth:`ModelNet10Dataset.init_worker`)."""
+    pid = os.getpid()
+    for key, (owner, env) in list(_ENVIRONMENTS.items()):
+        if owner != pid:
+            env.close()  # this process's copy only: the parent's stays open
+            del _ENVIRONMENTS[key]
 
 
 def close_lmdb_environments() -> None:
@@ -382,6 +396,12 @@ class ModelNet10Dataset(Dataset):
         state["_env"] = state["_pid"] = None  # environments do not pickle; each process opens its own
         return state
 
+    def init_worker(self) -> None:
+        """Run in a DataLoader worker when it starts (:func:`~image2sphere.data.common.init_worker`):
+        forget the environments inherited through ``fork``; the first read opens this worker's own."""
+        close_inherited_lmdb_environments()
+        self._env = self._pid = None
+
     def _record(self, key: str) -> bytes:
         if self._env is None or self._pid != os.getpid():
             self._env = _environment(self.lmdb_dir)
@@ -427,7 +447,8 @@ class ModelNet10DataModule(PoseDataModule):
         val_instances_per_class: object instances per class held out of the training split (chosen
             with ``seed``); all their views form the validation set. 0: no validation.
         image_size: network input size; images are resized when the records differ.
-        batch_size, num_workers, pin_memory: loader settings (evaluation uses the same batch size).
+        batch_size, num_workers, pin_memory: loader settings (evaluation uses the same batch size);
+            ``num_workers`` an integer or ``"auto"`` (see :class:`~image2sphere.data.common.PoseDataModule`).
         on_corrupt: ``"fail"`` or ``"skip"`` for records that do not decode.
         seed: seed of the validation split and of the shuffling.
 
@@ -443,7 +464,7 @@ class ModelNet10DataModule(PoseDataModule):
         val_instances_per_class: int = 0,
         image_size: int = 224,
         batch_size: int = 64,
-        num_workers: int = 0,
+        num_workers: int | str | None = 0,
         pin_memory: bool = False,
         on_corrupt: str = "fail",
         seed: int = 0,
@@ -461,7 +482,7 @@ class ModelNet10DataModule(PoseDataModule):
         self.val_instances_per_class = _check_int(val_instances_per_class, "dataset.val_instances_per_class", 0)
         self.image_size = _check_int(image_size, "dataset.image_size", 1)
         self.batch_size = _check_int(batch_size, "dataset.batch_size", 1)
-        self.num_workers = _check_int(num_workers, "dataset.num_workers", 0)
+        self.num_workers = num_workers  # an integer >= 0 or "auto" (checked by PoseDataModule)
         if not isinstance(pin_memory, bool):
             raise ValueError(f"dataset.pin_memory must be true or false, got {pin_memory!r}")
         self.pin_memory = pin_memory

@@ -56,11 +56,12 @@ from pathlib import Path
 import numpy as np
 import torch
 from PIL import ImageOps
-from torch.utils.data import Dataset
 
 from image2sphere.data.augment import GL_TO_CV, box_to_virtual_camera, hflip_box, hflip_rotation, warp_image
 from image2sphere.data.common import (
     CorruptImageError,
+    EpochDataset,
+    EpochIndex,
     PoseDataModule,
     VerifyReport,
     check_corrupt_policy,
@@ -436,8 +437,12 @@ def list_renderforcnn(
 # --------------------------------------------------------------------------------------------------
 
 
-class Pascal3DDataset(Dataset):
+class Pascal3DDataset(EpochDataset):
     """Warped PASCAL3D+ objects, optionally augmented and mixed with RenderForCNN images.
+
+    Items, :meth:`source` and :meth:`sample` take an index ``i`` (in the epoch of the last
+    :meth:`set_epoch`) or an :class:`~image2sphere.data.common.EpochIndex` ``(epoch, i)``, what the
+    training sampler yields so that DataLoader workers follow the epoch.
 
     Args:
         real: the objects (:func:`list_pascal3d_objects`).
@@ -478,22 +483,22 @@ class Pascal3DDataset(Dataset):
         self.epoch = 0
         self._warned: set[str] = set()
 
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = int(epoch)
-
     def __len__(self) -> int:
         return len(self.real) + self.n_synthetic
 
-    def source(self, i: int) -> Pascal3DObject | SyntheticView:
-        """The real object or synthetic view behind item ``i`` (in the current epoch)."""
+    def source(self, key: int | EpochIndex) -> Pascal3DObject | SyntheticView:
+        """The real object or synthetic view behind item ``key`` (an index in the current epoch or
+        ``(epoch, index)``)."""
+        epoch, i = self.epoch_and_index(key)
         if i < len(self.real):
             return self.real[i]
-        g = np.random.default_rng(stable_seed("synthetic-draw", self.seed, self.epoch, i))
+        g = np.random.default_rng(stable_seed("synthetic-draw", self.seed, epoch, i))
         return self.synthetic[int(g.integers(len(self.synthetic)))]
 
-    def sample(self, i: int) -> tuple[np.ndarray, np.ndarray, int]:
-        """Item ``i`` before normalisation: ``(uint8 image (S, S, 3), rotation (3, 3) float64, class)``."""
-        src = self.source(i)
+    def sample(self, key: int | EpochIndex) -> tuple[np.ndarray, np.ndarray, int]:
+        """Item ``key`` before normalisation: ``(uint8 image (S, S, 3), rotation (3, 3) float64, class)``."""
+        epoch, i = self.epoch_and_index(key)
+        src = self.source(EpochIndex(epoch, i))
         image = decode_image(src.path if isinstance(src, SyntheticView) else src.image)
         width, height = image.size
         if isinstance(src, SyntheticView):
@@ -506,7 +511,7 @@ class Pascal3DDataset(Dataset):
         R = src.rotation
         roll = 0.0
         if self.augment is not None:
-            g = np.random.default_rng(stable_seed("augment", self.seed, self.epoch, i))
+            g = np.random.default_rng(stable_seed("augment", self.seed, epoch, i))
             if self.augment["flip"] and g.random() < 0.5:
                 image = ImageOps.mirror(image)
                 box = hflip_box(box, width)
@@ -525,9 +530,10 @@ class Pascal3DDataset(Dataset):
         R = GL_TO_CV @ W @ GL_TO_CV @ R
         return pixels, R, src.class_index
 
-    def __getitem__(self, i: int) -> dict[str, torch.Tensor] | None:
+    def __getitem__(self, key: int | EpochIndex) -> dict[str, torch.Tensor] | None:
+        epoch, i = self.epoch_and_index(key)
         try:
-            pixels, R, c = self.sample(i)
+            pixels, R, c = self.sample(EpochIndex(epoch, i))
         except CorruptImageError as e:
             skip_corrupt(e, self.on_corrupt, self._warned)
             return None
@@ -594,7 +600,8 @@ class Pascal3DDataModule(PoseDataModule):
         augment: training augmentation (``{"flip", "box_jitter", "roll_std_deg"}``); ``None``: none.
         val_per_class: real training images per class held out (chosen with ``seed``) for validation.
         synthetic_focal: focal length (pixels) assumed for synthetic images.
-        batch_size, num_workers, pin_memory: loader settings.
+        batch_size, num_workers, pin_memory: loader settings; ``num_workers`` an integer or ``"auto"``
+            (see :class:`~image2sphere.data.common.PoseDataModule`).
         on_corrupt: ``"fail"`` or ``"skip"`` for images that do not decode.
         seed: seed of the validation split, shuffling, augmentation and synthetic draws.
         classes: the categories used (default all 12); ``class_index`` is the position in this list.
@@ -611,7 +618,7 @@ class Pascal3DDataModule(PoseDataModule):
         val_per_class: int = 0,
         synthetic_focal: float = 3000.0,
         batch_size: int = 64,
-        num_workers: int = 0,
+        num_workers: int | str | None = 0,
         pin_memory: bool = False,
         on_corrupt: str = "fail",
         seed: int = 0,
@@ -625,10 +632,11 @@ class Pascal3DDataModule(PoseDataModule):
             raise ValueError(f"dataset.synthetic_ratio must be a number >= 0, got {synthetic_ratio!r}")
         if not isinstance(val_per_class, int) or val_per_class < 0:
             raise ValueError(f"dataset.val_per_class must be an integer >= 0, got {val_per_class!r}")
-        if image_size < 8 or batch_size < 1 or num_workers < 0 or synthetic_focal <= 0:
+        self.num_workers = num_workers  # an integer >= 0 or "auto" (checked by PoseDataModule)
+        if image_size < 8 or batch_size < 1 or synthetic_focal <= 0:
             raise ValueError(
-                "dataset.image_size must be >= 8, batch_size >= 1, num_workers >= 0 and synthetic_focal > 0; "
-                f"got {image_size}, {batch_size}, {num_workers}, {synthetic_focal}"
+                "dataset.image_size must be >= 8, batch_size >= 1 and synthetic_focal > 0; "
+                f"got {image_size}, {batch_size}, {synthetic_focal}"
             )
         self.augment = _check_augment(augment)
         self.on_corrupt = check_corrupt_policy(on_corrupt, "dataset.on_corrupt")
@@ -643,7 +651,6 @@ class Pascal3DDataModule(PoseDataModule):
         self.val_per_class = val_per_class
         self.synthetic_focal = float(synthetic_focal)
         self.batch_size = int(batch_size)
-        self.num_workers = int(num_workers)
         self.pin_memory = bool(pin_memory)
         self.seed = int(seed)
         self.class_names = list(self.classes)

@@ -28,10 +28,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch.utils.data import Dataset
 
 from image2sphere.data.common import (
     CorruptImageError,
+    EpochDataset,
+    EpochIndex,
     PoseDataModule,
     VerifyReport,
     check_corrupt_policy,
@@ -225,8 +226,12 @@ def load_symsol_rotations(split_dir: str | Path, shapes: Sequence[str]) -> dict[
     return out
 
 
-class SymsolDataset(Dataset):
+class SymsolDataset(EpochDataset):
     """Images and rotations of some SYMSOL shapes in one split.
+
+    Items take an index (in the epoch of the last :meth:`set_epoch`) or an
+    :class:`~image2sphere.data.common.EpochIndex` ``(epoch, index)``, what the training sampler
+    yields so that the random label choice follows the epoch in DataLoader workers too.
 
     Args:
         root: the dataset root (holding ``train/`` and ``test/``).
@@ -237,7 +242,9 @@ class SymsolDataset(Dataset):
             ``"first"`` (the rendering rotation; IPDF). Only used when ``return_all`` is False.
         return_all: return the full equivalent set with a mask (evaluation) instead of one label.
         image_size: images are resized to this square size when they differ.
-        cache_images: decode every image once, up front, and keep them in memory (uint8).
+        cache_images: decode every image once, up front in this process, and keep them in memory
+            (uint8, ``N * S * S * 3`` bytes; shared with forked workers). Otherwise images are decoded
+            by ``__getitem__``, in the DataLoader workers.
         seed: seed of the label choice.
         on_corrupt: ``"fail"`` (raise, naming the file) or ``"skip"`` (log it; the item is ``None``
             and :func:`image2sphere.data.common.collate_skipping_corrupt` drops and counts it).
@@ -301,13 +308,11 @@ class SymsolDataset(Dataset):
     def _read(self, i: int) -> torch.Tensor:
         return load_image(self.image_path(i), self.image_size)
 
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = int(epoch)
-
     def __len__(self) -> int:
         return len(self.items)
 
-    def __getitem__(self, i: int) -> dict[str, torch.Tensor] | None:
+    def __getitem__(self, key: int | EpochIndex) -> dict[str, torch.Tensor] | None:
+        epoch, i = self.epoch_and_index(key)
         c, row = self.items[i]
         try:
             image = self._cache[i] if self._cache is not None else self._read(i)
@@ -328,7 +333,7 @@ class SymsolDataset(Dataset):
         else:
             j = 0
             if self.label == "random" and count > 1:
-                g = torch.Generator().manual_seed(stable_seed("label", self.seed, self.epoch, c, row))
+                g = torch.Generator().manual_seed(stable_seed("label", self.seed, epoch, c, row))
                 j = int(torch.randint(count, (1,), generator=g))
             item["rotation"] = rotations[j].clone()
         return item
@@ -350,8 +355,10 @@ class SymsolDataModule(PoseDataModule):
         test_per_shape: use only the first this many test images of each shape.
         label: one training label per image, ``"random"`` equivalent or ``"first"``.
         image_size: network input size; images are resized when the files differ.
-        batch_size, num_workers, pin_memory: loader settings (evaluation uses the same batch size).
-        cache_images: decode all images once into memory (fast for small sets).
+        batch_size, num_workers, pin_memory: loader settings (evaluation uses the same batch size);
+            ``num_workers`` an integer or ``"auto"`` (see :class:`~image2sphere.data.common.PoseDataModule`).
+        cache_images: decode all images once into memory (fast for small sets; without it the
+            loader workers decode them).
         seed: seed of the validation split, the shuffling and the label choice.
         render: if set, a dict of :func:`image2sphere.data.render.render_symsol` arguments
             (``train``, ``test`` image counts per shape, ``image_size``, ``seed``, ...): the set is
@@ -371,7 +378,7 @@ class SymsolDataModule(PoseDataModule):
         label: str = "random",
         image_size: int = 224,
         batch_size: int = 64,
-        num_workers: int = 0,
+        num_workers: int | str | None = 0,
         pin_memory: bool = False,
         cache_images: bool = False,
         seed: int = 0,
@@ -398,8 +405,9 @@ class SymsolDataModule(PoseDataModule):
                 raise ValueError(f"dataset.{key} must be a positive integer or null, got {value!r}")
         if not isinstance(val_per_shape, int) or val_per_shape < 0:
             raise ValueError(f"dataset.val_per_shape must be an integer >= 0, got {val_per_shape!r}")
-        if batch_size < 1 or num_workers < 0:
-            raise ValueError(f"dataset.batch_size must be >= 1 and num_workers >= 0, got {batch_size}, {num_workers}")
+        if batch_size < 1:
+            raise ValueError(f"dataset.batch_size must be >= 1, got {batch_size}")
+        self.num_workers = num_workers  # an integer >= 0 or "auto" (checked by PoseDataModule)
         self.render = dict(render) if render is not None else None
         if root is None:
             if self.render is None or render_dir is None:
@@ -417,7 +425,6 @@ class SymsolDataModule(PoseDataModule):
         self.label = label
         self.image_size = int(image_size)
         self.batch_size = int(batch_size)
-        self.num_workers = int(num_workers)
         self.pin_memory = bool(pin_memory)
         self.cache_images = bool(cache_images)
         self.seed = int(seed)

@@ -27,6 +27,8 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from image2sphere.data.common import check_num_workers
+
 __all__ = ["check_eval_config", "check_train_config", "describe_run", "resume_config"]
 
 log = logging.getLogger(__name__)
@@ -75,7 +77,7 @@ def check_train_config(cfg: DictConfig) -> None:
     )
     for key in ("dataset.image_size", "dataset.batch_size", "model.net.image_size"):
         _int_at_least(cfg, key, 1)
-    _int_at_least(cfg, "dataset.num_workers", 0)
+    check_num_workers(OmegaConf.select(cfg, "dataset.num_workers", default=0))  # an integer >= 0 or auto
     net_size, data_size = OmegaConf.select(cfg, "model.net.image_size"), OmegaConf.select(cfg, "dataset.image_size")
     if net_size is not None and data_size is not None and net_size != data_size:
         raise ValueError(

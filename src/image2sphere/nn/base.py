@@ -11,6 +11,19 @@ class indices ``[B]``) to its own output tensor, and says what that output means
 
 Adding a method is one subclass (with these two methods and ``forward``) plus one
 ``conf/model/<name>.yaml`` file (docs/configuration.md).
+
+Conventions: mixed precision (:mod:`image2sphere.precision`)
+-----------------------------------------------------------
+* Under an enclosing ``torch.autocast`` (``trainer.precision=bf16-mixed`` or ``16-mixed``) only the
+  encoder runs in reduced precision: :meth:`Float32Head.encode` (behind :meth:`PoseNetwork.features`
+  and :meth:`PoseNetwork.pooled_features`) runs it under that autocast and returns float32 features.
+* Everything else computes in float32 by construction: :class:`Float32Head` wraps ``forward``,
+  ``output_distribution`` and ``loss`` of every subclass, when the subclass is defined, in
+  :func:`~image2sphere.precision.float32_region` (autocast off, float16/bfloat16 tensor arguments cast
+  to float32). A new method gets this without writing anything; its ``forward`` reads the images
+  through ``features``, ``pooled_features`` or ``encode`` (a direct ``self.encoder(...)`` call would
+  run the encoder in float32 too: correct, only slower).
+* Without autocast nothing changes: the wrappers call the methods as they are.
 """
 
 from __future__ import annotations
@@ -21,11 +34,37 @@ import torch
 from torch import nn
 
 from image2sphere.distributions.base import PoseDistribution
+from image2sphere.precision import encoder_autocast, float32_methods, float32_region, to_float32
 
-__all__ = ["PoseNetwork", "method_of"]
+__all__ = ["Float32Head", "PoseNetwork", "method_of"]
 
 
-class PoseNetwork(nn.Module):
+class Float32Head(nn.Module):
+    """A network with an image ``encoder`` whose every other part computes in float32 under autocast.
+
+    Each subclass's own :attr:`FLOAT32_METHODS` are wrapped in
+    :func:`~image2sphere.precision.float32_region` when the subclass is defined; :meth:`encode` runs
+    ``self.encoder`` under the autocast that enclosed the call (module docstring).
+    """
+
+    #: methods that run with autocast off and float16/bfloat16 tensor arguments cast to float32
+    FLOAT32_METHODS: tuple[str, ...] = ("forward", "output_distribution", "loss")
+
+    encoder: nn.Module
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        float32_methods(cls, cls.FLOAT32_METHODS)
+
+    def encode(self, images: torch.Tensor) -> torch.Tensor:
+        """``self.encoder(images)``, the one part that follows an enclosing autocast; its output as
+        float32 when it ran under autocast (else unchanged)."""
+        with encoder_autocast() as mixed:
+            x = self.encoder(images)
+        return to_float32(x) if mixed else x
+
+
+class PoseNetwork(Float32Head):
     """Shared parts: the encoder and the optional one-hot class channels; the method's interface.
 
     Args:
@@ -46,8 +85,9 @@ class PoseNetwork(nn.Module):
         self.feature_channels = encoder.out_channels + num_classes
 
     def features(self, images: torch.Tensor, class_index: torch.Tensor | None) -> torch.Tensor:
-        """Encoder map ``[B, C (+ num_classes), h, w]``, with the class one-hot as constant channels."""
-        x = self.encoder(images)
+        """Encoder map ``[B, C (+ num_classes), h, w]``, with the class one-hot as constant channels
+        (float32 under autocast, :meth:`encode`)."""
+        x = self.encode(images)
         if self.num_classes == 0:
             return x
         onehot = self.class_onehot(class_index, len(x)).to(x.dtype)  # [B, nc]
@@ -95,9 +135,9 @@ def method_of(net: nn.Module) -> tuple[Callable[[torch.Tensor], PoseDistribution
     if isinstance(lmax, int) and not isinstance(lmax, bool):
         from image2sphere.so3.distribution import SO3Distribution, fourier_grid_nll
 
-        return (
-            lambda output: SO3Distribution(output, lmax),
-            lambda output, rotation, grid_level: fourier_grid_nll(output, lmax, rotation, grid_level),
+        return (  # in float32 under autocast, as a pose network's own methods
+            float32_region(lambda output: SO3Distribution(output, lmax)),
+            float32_region(lambda output, rotation, grid_level: fourier_grid_nll(output, lmax, rotation, grid_level)),
         )
     raise ValueError(
         f"model.net must be a pose network with output_distribution() and loss() "

@@ -105,7 +105,7 @@ class _ClassRegressionNet(PoseNetwork):
         self.hidden_b, self.last_b = _mlp(self.feature_channels, hidden, out_features[1], num_classes)
 
     def forward(self, images: torch.Tensor, class_index: torch.Tensor | None = None) -> torch.Tensor:
-        pooled = self.encoder(images).mean(dim=(-1, -2))  # [B, C]
+        pooled = self.encode(images).mean(dim=(-1, -2))  # [B, C] (float32 under autocast)
         onehot = self.class_onehot(class_index, len(pooled)) if self.num_classes else None  # [B, nc]
         return torch.cat([self.last_a(self.hidden_a(pooled), onehot), self.last_b(self.hidden_b(pooled), onehot)], 1)
 

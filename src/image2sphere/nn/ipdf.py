@@ -13,6 +13,10 @@ Conventions (docs/conventions.md#densities)
   ``gamma(v) = [sin(2^0 v), cos(2^0 v), ..., sin(2^(L-1) v), cos(2^(L-1) v)]`` (``18 L`` numbers;
   ``v`` itself when ``L = 0``), as in the authors' code (no factor ``pi``).
 * Densities are w.r.t. the Haar measure of volume ``pi^2`` and are scored by the grid protocol.
+* Mixed precision (:mod:`image2sphere.precision`): under autocast only the encoder runs in reduced
+  precision; the features are float32, and ``forward``'s pooling, :meth:`IPDF.score`,
+  :meth:`IPDF.output_distribution` and :meth:`IPDF.loss` run with autocast off
+  (:class:`~image2sphere.nn.base.Float32Head`), as does the distribution's every method.
 * Training loss (:meth:`IPDF.loss`): the true rotation ``R*`` among ``n`` uniformly drawn queries
   ``Q`` (one set per batch, from the torch global generator), density estimated from the softmax
   over the ``n + 1`` points, each standing for a volume ``pi^2 / (n + 1)``::
@@ -31,6 +35,7 @@ from torch import nn
 
 from image2sphere.distributions.base import LOG_UNIFORM_DENSITY
 from image2sphere.distributions.implicit import ImplicitDistribution
+from image2sphere.nn.base import Float32Head
 from image2sphere.so3.grid import so3_grid_size, so3_healpix_grid
 from image2sphere.so3.rotations import random_rotations
 
@@ -49,7 +54,7 @@ def positional_encoding(x: torch.Tensor, num_fourier: int) -> torch.Tensor:
     return torch.cat([angles.sin(), angles.cos()], dim=-1).flatten(-2)  # [..., L * 2D]
 
 
-class IPDF(nn.Module):
+class IPDF(Float32Head):
     """Implicit-PDF: an MLP scores (image feature, rotation) pairs; the softmax over SO(3) is the pose
     distribution.
 
@@ -74,6 +79,8 @@ class IPDF(nn.Module):
     ``hidden=256, depth=2``, ``n_queries=4096`` on the grid, batch 64, lr 1e-5, 150k steps.
     Layers are initialised as Keras' ``Dense`` (Glorot-uniform weights, zero biases).
     """
+
+    FLOAT32_METHODS = (*Float32Head.FLOAT32_METHODS, "score")
 
     def __init__(
         self,
@@ -119,7 +126,7 @@ class IPDF(nn.Module):
     # ------------------------------------------------------------------ features
     def forward(self, images: torch.Tensor, class_index: torch.Tensor | None = None) -> torch.Tensor:
         """Images ``[B, 3, H, W]`` (and class indices ``[B]``) -> per-image features ``[B, F]``."""
-        x = self.encoder(images)
+        x = self.encode(images)  # float32 under autocast
         if x.ndim != 4 or x.shape[1] != self.feature_dim - self.num_classes:
             raise ValueError(
                 f"the encoder must return (B, {self.feature_dim - self.num_classes}, h, w), got {tuple(x.shape)}"

@@ -145,7 +145,7 @@ class RotationRegression(PoseNetwork):
 
     def forward(self, images: torch.Tensor, class_index: torch.Tensor | None = None) -> torch.Tensor:
         """Images ``[B, 3, H, W]`` -> rotations ``[B, 3, 3]``."""
-        pooled = self.encoder(images).mean(dim=(-1, -2))  # [B, C]
+        pooled = self.encode(images).mean(dim=(-1, -2))  # [B, C] (float32 under autocast)
         onehot = self.class_onehot(class_index, len(pooled)) if self.num_classes else None  # [B, nc]
         x = self.last(self.hidden(pooled), onehot)  # [B, d]
         if self.representation == "6d":

@@ -25,6 +25,10 @@ i.e. ``861 / (455 * n_gamma)`` of the dense matrix (1/101 at level 5). Reduction
 number per image stream stage 2 over pixel chunks: besides the operator they hold only the
 per-pixel coefficients, ``(2 lmax + 1) / n_gamma`` of the full output (164 MB for a batch of 64
 at level 6, whose full output would be 4.8 GB).
+
+Mixed precision (:mod:`image2sphere.precision`): the evaluators are cached per process, so they are
+always built with autocast off (in the dtype asked for); they are evaluated in float32 under autocast
+whenever a network's ``loss`` or a distribution's method calls them (the only callers in training).
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from functools import lru_cache
 
 import torch
 
+from image2sphere.precision import float32_region
 from image2sphere.so3.grid import (
     MAX_DENSE_LEVEL,
     MAX_STREAMED_LEVEL,
@@ -334,6 +339,7 @@ class HealpixGridEvaluator:
 
 
 @lru_cache(maxsize=16)
+@float32_region  # cached for later calls: the Wigner tables are never built under autocast
 def _cached(lmax: int, level: int, dtype: torch.dtype, device: str) -> HealpixGridEvaluator:
     return HealpixGridEvaluator(lmax, level, dtype=dtype, device=device)
 

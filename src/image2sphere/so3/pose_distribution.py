@@ -24,6 +24,14 @@ A family subclasses :class:`PoseDistribution` and implements :meth:`~PoseDistrib
 (grid reductions, nearest-point log density, modes, sampling on the grid, points above a threshold)
 comes from this class. A point regressor subclasses :class:`PointEstimate` instead: it has a mode
 and no density.
+
+* **Mixed precision** (:mod:`image2sphere.precision`): every method of this class and of each family
+  (``__init__``, class methods and property getters included) computes in float32 (or float64 where
+  the family's parameters are) under an enclosing ``torch.autocast``: :meth:`PoseDistribution.__init_subclass__`
+  wraps them, when a family is defined, in :func:`~image2sphere.precision.float32_region` (autocast
+  off, float16/bfloat16 tensor arguments cast to float32). Log densities, grid sweeps, logsumexps,
+  normalisers, modes and samples are never evaluated in reduced precision, whoever calls them; the
+  grid tables cached for later calls are built the same way. Without autocast nothing changes.
 """
 
 from __future__ import annotations
@@ -36,6 +44,7 @@ from typing import NamedTuple
 
 import torch
 
+from image2sphere.precision import float32_methods, float32_region
 from image2sphere.so3.grid import (
     MAX_DENSE_LEVEL,
     check_level,
@@ -64,6 +73,7 @@ CHUNK_POINTS = 1 << 16
 
 
 @functools.lru_cache(maxsize=2)
+@float32_region  # cached: never built under autocast
 def _grid_rotations(level: int, dtype: torch.dtype, device: str) -> torch.Tensor:
     """The rotations of the grid of ``level`` ``(N, 3, 3)``, pixel-major (85 MB at level 5 in float32)."""
     return so3_healpix_grid(level, dtype=dtype).to(device)
@@ -401,6 +411,11 @@ class PoseDistribution:
     dtype: torch.dtype
     device: torch.device
 
+    def __init_subclass__(cls, **kwargs):
+        """Every method a family defines computes in float32 under autocast (module docstring)."""
+        super().__init_subclass__(**kwargs)
+        float32_methods(cls)
+
     # ------------------------------------------------------------------ what a family implements
     def unnormalized_log_density(self, rotations: torch.Tensor) -> torch.Tensor:
         """Log density up to a constant per distribution at ``(K, 3, 3)`` (shared) or ``(B, K, 3, 3)``
@@ -718,6 +733,9 @@ class PoseDistribution:
     def _refine_modes(self, b: int, centres: torch.Tensor, level: int) -> torch.Tensor:
         """Grid modes ``(k, 3, 3)`` of distribution ``b`` moved off the grid; here: unchanged."""
         return centres
+
+
+float32_methods(PoseDistribution)  # the base class's own methods (subclasses: __init_subclass__)
 
 
 class PointEstimate(PoseDistribution):

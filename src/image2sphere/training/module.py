@@ -26,11 +26,13 @@ Conventions
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable, Sequence
 
 import lightning.pytorch as pl
 import numpy as np
 import torch
+from lightning.pytorch.utilities.warnings import PossibleUserWarning
 from torch import nn
 
 from image2sphere.data.common import stable_seed
@@ -47,6 +49,7 @@ from image2sphere.metrics import (
     tie_break_uniforms,
 )
 from image2sphere.nn.base import method_of
+from image2sphere.precision import float32_region
 from image2sphere.so3.grid import (
     MAX_DENSE_LEVEL,
     MAX_STREAMED_LEVEL,
@@ -56,6 +59,12 @@ from image2sphere.so3.grid import (
 )
 
 __all__ = ["NonFiniteLossError", "PoseEstimationModule"]
+
+# The validation and test metrics are computed from the per-image records of every rank (_gather), so
+# each rank logs the same values and Lightning's advice to reduce them across ranks does not apply.
+warnings.filterwarnings(
+    "ignore", message=r"It is recommended to use `self\.log\('(val|test)/", category=PossibleUserWarning
+)
 
 
 class NonFiniteLossError(FloatingPointError):
@@ -161,10 +170,20 @@ class PoseEstimationModule(pl.LightningModule):
                 f"(global step {self.global_step}); the run was stopped before this step could reach a "
                 "checkpoint. Lower model.optimizer.lr or check the data"
             )
-        self.log("train/loss", loss, prog_bar=True, on_step=True, on_epoch=True, batch_size=len(batch["image"]))
+        # sync_dist: in a distributed run the logged loss is the mean over the ranks' batches
+        self.log(
+            "train/loss",
+            loss,
+            prog_bar=True,
+            on_step=True,
+            on_epoch=True,
+            batch_size=len(batch["image"]),
+            sync_dist=True,
+        )
         return loss
 
     # ------------------------------------------------------------------ evaluation
+    @float32_region  # under mixed precision: the encoder in bf16/fp16, the metrics in float32
     def _evaluate(
         self, batch: dict, level: int, spread_level: int | None, calibration: bool = False
     ) -> dict[str, torch.Tensor]:

@@ -457,6 +457,9 @@ def sweep_values(args: list[str]) -> dict[str, list[str]]:
     for arg in args:
         if arg.startswith("hparams_search="):
             conf = yaml.safe_load((REPO / "conf" / "hparams_search" / f"{arg.split('=', 1)[1]}.yaml").read_text())
+            if optuna_search(args):  # distributions that Optuna samples, one job per trial
+                multirun = True
+                continue
             for key, values in conf["hydra"]["sweeper"]["params"].items():
                 swept[key] = [str(v).strip() for v in str(values).split(",")]
             multirun = True
@@ -472,6 +475,16 @@ def sweep_values(args: list[str]) -> dict[str, list[str]]:
                 if key not in fixed and value not in swept.setdefault(key, []):
                     swept[key].append(value)
     return swept
+
+
+def optuna_search(args: list[str]) -> bool:
+    """The command runs an ``hparams_search`` file that selects Hydra's Optuna sweeper."""
+    for arg in args:
+        if arg.startswith("hparams_search="):
+            text = (REPO / "conf" / "hparams_search" / f"{arg.split('=', 1)[1]}.yaml").read_text()
+            if "override /hydra/sweeper: optuna" in text:
+                return True
+    return False
 
 
 def job_overrides(args: list[str]) -> list[list[str]]:
@@ -513,6 +526,8 @@ def train_additions(args: list[str], ws: Workspace) -> list[str]:
     out, seen = [], set(keys)
     if table_of(args) is not None and "hydra.sweeper.jobs" not in keys:  # its first and last job
         out.append(f"hydra.sweeper.jobs=[{','.join(str(n) for n in table_selection(args))}]")
+    if optuna_search(args) and "hydra.sweeper.n_trials" not in keys:
+        out.append("hydra.sweeper.n_trials=2")
     for arg in ["trainer.fast_dev_run=true", *SMOKE, *TINY, *paths]:
         key = override_key(arg)
         if key in seen or any(OmegaConf.select(c, key, default="<absent>", throw_on_resolution_failure=False)
@@ -520,6 +535,9 @@ def train_additions(args: list[str], ws: Workspace) -> list[str]:
             continue
         out.append(arg)
         seen.add(key)
+    # a GPU command (trainer=ddp: every GPU, devices=-1) runs here on the CPU (TINY's accelerator) as 2 processes
+    if "trainer.devices" not in seen and any(OmegaConf.select(c, "trainer.devices") == -1 for c in configs):
+        out.append("trainer.devices=2")
     return out
 
 
@@ -641,6 +659,14 @@ def check_train(argv, proc, args: list[str], ws: Workspace) -> None:
             missing = [o for o in table[int(job.name)] if o not in ran]
             assert not missing, f"job {job.name} of the table did not run with {missing}: {ran}" + info
             assert_overrides_applied(job / ".hydra" / "config.yaml", _choices(job), overrides, sweep)
+        return
+    if optuna_search(args):  # every trial ran and the best one was reported
+        trials = int(next(a.split("=", 1)[1] for a in argv if override_key(a) == "hydra.sweeper.n_trials"))
+        jobs = _job_dirs(ws, "multiruns")
+        assert len(jobs) == trials and all((j / "metrics.json").is_file() for j in jobs), info
+        (results,) = (ws.root / "logs" / "train" / "multiruns").glob("*/optimization_results.yaml")
+        assert "best_value" in yaml.safe_load(results.read_text()), info
+        assert (ws.root / "logs" / "optuna").is_dir(), "the study's storage was not written" + info
         return
     if sweep:
         jobs = _job_dirs(ws, "multiruns")
@@ -841,6 +867,37 @@ def check_tables(argv, proc, args: list[str], ws: Workspace) -> None:
         assert "not comparable" in proc.stdout, info
 
 
+SBATCH_OPTIONS = {"partition": "--partition={}", "nodes": "--nodes={}", "gpus_per_node": "--gpus-per-node={}",
+                  "account": "--account={}", "timeout_min": "--time={}", "mem_gb": "--mem={}GB"}  # fmt: skip
+
+
+def check_slurm_submission(argv: list[str], args: list[str], ws: Workspace) -> None:
+    """A ``hydra/launcher=slurm`` command submits to a stand-in ``sbatch`` (no cluster here), which keeps the
+    job script and refuses the job: the script asks SLURM for what the command says, one task per GPU and
+    an array of one job per run."""
+    bin_dir = ws.root / "slurm_bin"
+    bin_dir.mkdir()
+    keep = f'for a in "$@"; do cp "$a" {ws.root}/job.sh 2>/dev/null; done'
+    (bin_dir / "sbatch").write_text(f"#!/bin/sh\n{keep}\nexit 3\n")
+    (bin_dir / "srun").write_text("#!/bin/sh\nexit 0\n")
+    for tool in ("sbatch", "srun"):
+        (bin_dir / tool).chmod(0o755)
+    env = {**ws.env, "PATH": f"{bin_dir}{os.pathsep}{ws.env['PATH']}"}
+    proc = subprocess.run(argv, cwd=ws.root, env=env, capture_output=True, text=True, timeout=300)
+    info = describe(argv, proc)
+    assert (ws.root / "job.sh").is_file(), "nothing was submitted" + info
+    script = (ws.root / "job.sh").read_text()
+    given = {override_key(a): a.split("=", 1)[1] for a in args if "=" in a}
+    for key, option in SBATCH_OPTIONS.items():
+        if f"hydra.launcher.{key}" in given:
+            assert f"#SBATCH {option.format(given[f'hydra.launcher.{key}'])}" in script, (option, script)
+    gpus = given.get("hydra.launcher.gpus_per_node", "1")
+    assert f"#SBATCH --ntasks-per-node={gpus}" in script, script
+    assert given.get("trainer.devices", gpus) == gpus and "--signal=USR2@" in script, script
+    jobs = len(job_overrides(args))
+    assert re.search(rf"#SBATCH --array=0-{jobs - 1}%\d+", script), (jobs, script)
+
+
 def check_pip(command: str) -> None:
     """A README ``pip install`` line installs what ``.ci/run`` installs (same packages, same pins)."""
 
@@ -881,7 +938,8 @@ def _param(command: Command):
     two unless it names its jobs), and commands that the README does not show (docs/ and config
     comments: variants of the README's, which the quick run covers)."""
     words = shlex.split(command.text)
-    slow = words[:2] in (["python", "benchmarks/grid_eval.py"], ["python", "benchmarks/table_cost.py"])
+    slow = words[:2] in (["python", "benchmarks/grid_eval.py"], ["python", "benchmarks/table_cost.py"],
+                         ["python", "benchmarks/data.py"])  # fmt: skip
     slow = slow or not any(w.startswith("README.md:") for w in command.where) and _first_words(command.text) == "python"
     if words[:3] == ["python", "-m", "src.train"] and not any(PRETRAINED.match(w) for w in words):
         if table_of(words[3:]) is not None:  # its first and last job, unless it names its jobs
@@ -914,12 +972,20 @@ def test_documented_command(command: Command, fixtures_root, checkpoint_run, tmp
         return check_benchmark(argv, ws)
     if args[0] == "benchmarks/table_cost.py":
         return check_table_cost(argv, ws)
+    if args[0] == "benchmarks/data.py":  # every reader on the fixtures and the model's step, to the end
+        proc = run_in(ws, argv, timeout=300)
+        assert proc.returncode == 0 and "total benchmark time" in proc.stdout, describe(argv, proc)
+        readers = {"symsol", "modelnet10", "pascal3d", "symsol_rendered"}
+        assert readers <= {line.split()[0] for line in proc.stdout.splitlines() if line.strip()}, proc.stdout
+        return
     assert args[0] == "-m", f"no runner for {text!r}"
     module, rest = args[1], args[2:]
     if module == "src.train":
         render_documented_sets(rest, ws)
         weights = [PRETRAINED.match(a).group(1) for a in rest if PRETRAINED.match(a)]
         argv += train_additions(rest, ws)
+        if "hydra/launcher=slurm" in rest:
+            return check_slurm_submission(argv, rest, ws)
         proc = run_in(ws, argv)
         if weights:
             return check_pretrained_download(argv, proc, rest, weights[0])

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import inspect
 import math
+import re
 import subprocess
 import sys
 import time
@@ -70,6 +71,9 @@ def test_ddp_run_trains_and_tests_every_image_once_on_two_processes(ddp_run):
     assert metrics["n_images"] == 2 * TEST_PER_SHAPE
     assert out.count("Test metrics (train") == 1  # printed, and metrics.json written, by rank 0 only
     assert sorted(p.name for p in (run / ".hydra").iterdir()) == ["config.yaml", "hydra.yaml", "overrides.yaml"]
+    # the test grid's operator (eval_grid_level 3) is built once in each process, not per batch
+    built = re.findall(r"SO\(3\) grid evaluator built: lmax 2, level 3, .* \(process (\d+)\)", out)
+    assert len(built) == 2 and len(set(built)) == 2, built
     assert (run / "checkpoints" / "last.ckpt").is_file()
 
 

@@ -33,7 +33,9 @@ whenever a network's ``loss`` or a distribution's method calls them (the only ca
 
 from __future__ import annotations
 
+import logging
 import math
+import os
 from collections.abc import Callable
 from functools import lru_cache
 
@@ -57,6 +59,8 @@ from image2sphere.so3.wigner import (
     so3_layout,
     wigner_D,
 )
+
+_log = logging.getLogger(__name__)
 
 __all__ = [
     "MAX_OPERATOR_BYTES",
@@ -341,7 +345,10 @@ class HealpixGridEvaluator:
 @lru_cache(maxsize=16)
 @float32_region  # cached for later calls: the Wigner tables are never built under autocast
 def _cached(lmax: int, level: int, dtype: torch.dtype, device: str) -> HealpixGridEvaluator:
-    return HealpixGridEvaluator(lmax, level, dtype=dtype, device=device)
+    evaluator = HealpixGridEvaluator(lmax, level, dtype=dtype, device=device)
+    _log.info("SO(3) grid evaluator built: lmax %d, level %d, %s on %s (process %d)", lmax, level, dtype, device,
+              os.getpid())  # fmt: skip
+    return evaluator
 
 
 def get_grid_evaluator(

@@ -38,7 +38,6 @@ from __future__ import annotations
 import argparse
 import gc
 import os
-import platform
 import statistics
 import tempfile
 import time
@@ -51,6 +50,7 @@ os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
 import torch  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
+from _machine import cpu_model, load_line  # noqa: E402  (benchmarks/_machine.py, beside this script)
 from image2sphere.data.common import (  # noqa: E402
     EpochDataset,
     EpochIndex,
@@ -81,27 +81,6 @@ REPEATED_LENGTH = 50_000  # indices of the long epoch the loaders are timed on
 
 
 # ---------------------------------------------------------------------------------------------- helpers
-def cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine() or "unknown CPU"
-
-
-def load_line(when: str) -> str:
-    if not hasattr(os, "getloadavg"):
-        return f"load average {when}: n/a"
-    load = os.getloadavg()[0]
-    line = f"load average {when}: {load:.2f} ({available_cpus()} CPUs available)"
-    if load > 1.0:
-        line += " -- WARNING: other processes use the CPUs; timings may be slower and noisier"
-    return line
-
-
 def dataset_config(reader: str) -> dict:
     """The reader's ``conf/dataset`` settings, without ``_target_`` and the keys that point at files."""
     cfg = OmegaConf.to_container(OmegaConf.load(CONF / f"{READERS[reader]}.yaml"), resolve=False)

@@ -41,6 +41,7 @@ os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
 
 import torch  # noqa: E402
 
+from _machine import load_line  # noqa: E402  (benchmarks/_machine.py, beside this script)
 from image2sphere.so3 import (  # noqa: E402
     flat_wigner_from_angles,
     n_so3_coeffs,
@@ -372,15 +373,7 @@ def print_summary(results: list[dict]) -> None:
         print("  level-5 targets: not evaluated (level 5 not run)")
 
 
-def load_line(when: str) -> str:
-    """1-minute load average, with a warning when other processes compete for the cores."""
-    if not hasattr(os, "getloadavg"):
-        return f"load average {when}: n/a"
-    load, cores = os.getloadavg()[0], os.cpu_count() or 1
-    line = f"load average {when}: {load:.2f} ({cores} cores)"
-    if load > 1.0:
-        line += " -- WARNING: other processes use the CPUs; multi-threaded timings can be several times slower"
-    return line
+SLOWER = "multi-threaded timings can be several times slower"
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -414,7 +407,7 @@ def main(argv=None) -> None:
         f"timings: median of {args.repeats} runs after 1 warm-up "
         f"(fast build: median of {args.build_repeats}; dense build: 1 run); per-image = batch time / batch"
     )
-    print(load_line("at start"))
+    print(load_line("at start", SLOWER))
     # one-time costs (e3nn init, lazy imports) paid before anything is timed
     HealpixGridEvaluator(args.lmax, 0, dtype=DTYPE)
     build_dense(args.lmax, 0)
@@ -431,7 +424,7 @@ def main(argv=None) -> None:
         del D
     results = [bench_level(args, level, ref) for level in levels]
     print_summary(results)
-    print(f"\ntotal benchmark time: {time.perf_counter() - t_start:.0f} s; {load_line('at end')}")
+    print(f"\ntotal benchmark time: {time.perf_counter() - t_start:.0f} s; {load_line('at end', SLOWER)}")
 
 
 if __name__ == "__main__":

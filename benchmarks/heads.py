@@ -52,6 +52,7 @@ from hydra.utils import instantiate  # noqa: E402
 from omegaconf import DictConfig, open_dict  # noqa: E402
 from torch import nn  # noqa: E402
 
+from _machine import cpu_model, load_line  # noqa: E402  (benchmarks/_machine.py, beside this script)
 from image2sphere.nn.base import method_of  # noqa: E402
 from image2sphere.so3.rotations import random_rotations  # noqa: E402
 from image2sphere.training import register_resolvers  # noqa: E402
@@ -109,29 +110,6 @@ def median_time(fn, repeats: int, warmup: int = 1) -> float:
 
 def n_params(module: nn.Module) -> int:
     return sum(p.numel() for p in module.parameters())
-
-
-def cpu_model() -> str:
-    """The CPU's model name (``/proc/cpuinfo`` on Linux, else ``platform.processor()``)."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine() or "unknown CPU"
-
-
-def load_line(when: str) -> str:
-    """1-minute load average, with a warning when other processes compete for the cores."""
-    if not hasattr(os, "getloadavg"):
-        return f"load average {when}: n/a"
-    load, cores = os.getloadavg()[0], os.cpu_count() or 1
-    line = f"load average {when}: {load:.2f} ({cores} cores)"
-    if load > 1.0:
-        line += " -- WARNING: other processes use the CPUs; timings may be slower and noisier"
-    return line
 
 
 class FixedEncoder(nn.Module):

@@ -109,6 +109,25 @@ def test_ddp_run_resumes_from_its_checkpoint_on_two_processes(ddp_run, tmp_path,
     assert read_metrics(resumed)["n_images"] == 2 * TEST_PER_SHAPE
 
 
+@pytest.mark.slow
+def test_multirun_of_ddp_jobs_runs_each_job_on_two_processes_once(tmp_path, data_dir):
+    """Lightning starts the second rank by running the command line again: in a sweep (-m) that must be the
+    job, in the job's directory, not the whole sweep again; the next job starts its own process group."""
+    logs = tmp_path / "logs"
+    args = ["-m", "seed=0,1", *DDP[:2], "trainer.fast_dev_run=true", "logger=none"]
+    proc = run_train(args, data_dir, logs)
+    out = proc.stdout + proc.stderr
+    assert out.count("Launching 2 jobs locally") == 1  # no rank started a sweep of its own
+    assert out.count("GLOBAL_RANK: 1, MEMBER: 2/2") == 2  # each job had its second process
+    (sweep,) = (logs / "train" / "multiruns").iterdir()
+    jobs = sorted(p.name for p in sweep.iterdir() if p.is_dir())
+    assert jobs == ["0", "1"]
+    for job in jobs:
+        assert read_metrics(sweep / job)["n_images"] > 0
+        config = yaml.safe_load((sweep / job / ".hydra" / "config.yaml").read_text())
+        assert config["seed"] == int(job)
+
+
 def test_gathered_records_are_deduplicated_and_ordered_like_one_process(monkeypatch):
     """A padding sampler (torch's DistributedSampler) repeats images on the last rank: kept once."""
     from image2sphere.training.module import PoseEstimationModule

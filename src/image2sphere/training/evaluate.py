@@ -22,7 +22,13 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from image2sphere.training.checkpoint import CheckpointError, build_module, load_checkpoint
-from image2sphere.training.pipeline import TABLE_COLUMNS, _finish_loggers, _instantiate_list, format_metrics_table
+from image2sphere.training.pipeline import (
+    TABLE_COLUMNS,
+    _finish_loggers,
+    _instantiate_list,
+    ddp_children_run_this_job,
+    format_metrics_table,
+)
 from image2sphere.training.run_config import check_eval_config, command_line, override_key
 
 __all__ = ["evaluate", "format_metrics_markdown"]
@@ -109,7 +115,8 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     loggers = _instantiate_list(cfg.get("logger"), "logger")
     trainer: pl.Trainer = instantiate(cfg.trainer, logger=loggers or False, callbacks=[], enable_checkpointing=False)
     start = time.perf_counter()
-    trainer.test(model=module, datamodule=datamodule)
+    with ddp_children_run_this_job():  # in a multirun job, the other DDP ranks start as this job
+        trainer.test(model=module, datamodule=datamodule)
     metrics = {**module.test_metrics, "test_seconds": time.perf_counter() - start}
     if trainer.is_global_zero:
         output_dir.mkdir(parents=True, exist_ok=True)

@@ -8,11 +8,14 @@ a run refuses to start in a directory that already holds checkpoints or metrics.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
 import signal
+import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import lightning.pytorch as pl
@@ -25,7 +28,7 @@ from image2sphere.training.checkpointing import TrainingInterrupted
 from image2sphere.training.module import NonFiniteLossError
 from image2sphere.training.run_config import check_train_config, describe_run, protocol_settings, resume_config
 
-__all__ = ["format_metrics_table", "is_secondary_rank", "register_resolvers", "train"]
+__all__ = ["ddp_children_run_this_job", "format_metrics_table", "is_secondary_rank", "register_resolvers", "train"]
 
 log = logging.getLogger(__name__)
 
@@ -148,7 +151,60 @@ def _instantiate_list(group: DictConfig | None, what: str) -> list:
     return out
 
 
+@contextlib.contextmanager
+def ddp_children_run_this_job() -> Iterator[None]:
+    """Inside a job of a Hydra multirun: the processes Lightning starts for the other local ranks of
+    ``trainer=ddp`` run this job, in this job's directory, instead of the whole sweep again.
+
+    Lightning starts each of them with this process's command line plus
+    ``hydra.run.dir=<HydraConfig run.dir>``; in a multirun job that command line is the sweep (``-m``
+    and every value) and ``run.dir`` is not the job's directory. For the duration of the block the
+    command line is this job's own overrides as a single run (``hydra.mode=RUN``) and ``run.dir`` the
+    job's output directory. Outside a multirun it does nothing.
+    """
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
+        yield
+        return
+    hc = HydraConfig.get()
+    argv, run_dir = list(sys.argv), hc.run.dir
+    environment = {name: os.environ.get(name) for name in _LAUNCHER_VARIABLES}
+    sys.argv = [sys.argv[0], *hc.overrides.task, "hydra.mode=RUN"]
+    OmegaConf.set_readonly(hc, False)
+    hc.run.dir = hc.runtime.output_dir
+    try:
+        yield
+    finally:
+        sys.argv = argv
+        hc.run.dir = run_dir
+        OmegaConf.set_readonly(hc, True)
+        # the next job of the sweep starts its own ranks: this job's process group (its other ranks have
+        # exited) and the variables Lightning's launcher set for it must not carry over
+        if torch.distributed.is_available() and torch.distributed.is_initialized():
+            torch.distributed.destroy_process_group()
+        for name, value in environment.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+# what Lightning's process launcher sets in the environment of the process that starts the other ranks
+_LAUNCHER_VARIABLES = ("MASTER_ADDR", "MASTER_PORT", "NODE_RANK", "LOCAL_RANK", "WORLD_SIZE")
+
+
 def train(cfg: DictConfig) -> dict[str, float]:
+    """Fit and/or test as ``cfg`` says; returns the test metrics (empty when ``test=false``).
+
+    In a multirun job, the other ranks of a DDP run start as this job (:func:`ddp_children_run_this_job`).
+    """
+    with ddp_children_run_this_job():
+        return _train(cfg)
+
+
+def _train(cfg: DictConfig) -> dict[str, float]:
     """Fit and/or test as ``cfg`` says; returns the test metrics (empty when ``test=false``).
 
     With ``ckpt_path`` set, the run resumes from that checkpoint with the model, data and schedule of

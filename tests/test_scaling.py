@@ -11,6 +11,7 @@ from __future__ import annotations
 import inspect
 import math
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -107,6 +108,34 @@ def test_ddp_run_resumes_from_its_checkpoint_on_two_processes(ddp_run, tmp_path,
     assert saved["epoch"] == 1 and saved["global_step"] == 2 * first["global_step"]
     assert (resumed / "resumed_config.yaml").is_file()  # written once, by rank 0 (a second "x" open would fail)
     assert read_metrics(resumed)["n_images"] == 2 * TEST_PER_SHAPE
+
+
+@pytest.mark.slow
+def test_sigterm_stops_both_ranks_at_one_batch_and_the_resumed_ddp_run_ends_as_uninterrupted(tmp_path, data_dir):
+    """SIGTERM to rank 0 in the middle of epoch 1 (SLURM pre-emption, a kill): both ranks stop after the same
+    batch, last.ckpt holds it, and resuming on two processes reproduces the uninterrupted run's weights."""
+    common = [*DDP[:2], "logger=none", "dataset.batch_size=2", "trainer.max_epochs=2"]
+    stopped, resumed, full = tmp_path / "stopped", tmp_path / "resumed", tmp_path / "full"
+    cmd = train_command([*common, f"hydra.run.dir={stopped}"], data_dir, tmp_path / "logs")
+    proc = subprocess.Popen(cmd, cwd=REPO, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    ckpt = stopped / "checkpoints" / "last.ckpt"
+    deadline = time.monotonic() + 600
+    while not ckpt.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    time.sleep(0.5)  # into epoch 1
+    proc.send_signal(signal.SIGTERM)
+    out, _ = proc.communicate(timeout=300)
+    assert proc.returncode == 128 + signal.SIGTERM, out[-3000:]
+    assert f"Resume with: python -m src.train ckpt_path={ckpt}" in out, out[-3000:]
+    saved = torch.load(ckpt, map_location="cpu", weights_only=True)
+    run_train([*common, f"hydra.run.dir={full}"], data_dir, tmp_path / "logs")
+    resume = [*DDP[:2], "logger=none", "dataset.batch_size=2", f"ckpt_path={ckpt}", f"hydra.run.dir={resumed}"]
+    run_train(resume, data_dir, tmp_path / "l2")  # (the batch size again: TINY's would replace the checkpoint's)
+    a = torch.load(full / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    b = torch.load(resumed / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    assert saved["global_step"] < a["global_step"] == b["global_step"]
+    for key, value in a["state_dict"].items():
+        torch.testing.assert_close(b["state_dict"][key], value, rtol=1e-5, atol=1e-6, msg=f"weights differ: {key}")
 
 
 @pytest.mark.slow

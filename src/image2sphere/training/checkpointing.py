@@ -34,6 +34,7 @@ import lightning.pytorch as pl
 from lightning.fabric.utilities.cloud_io import _is_local_file_protocol
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.plugins.io import TorchCheckpointIO
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 __all__ = ["AtomicCheckpointIO", "EpochCheckpoint", "TrainingInterrupted"]
 
@@ -153,6 +154,12 @@ class EpochCheckpoint(ModelCheckpoint):
         signum = self._stop_signal
         if signum is None and trainer.received_sigterm:
             signum = signal.SIGTERM
+        if trainer.world_size > 1:
+            # A signal reaches the ranks of a DDP run at different moments: they decide together, at the
+            # end of the same batch, and all stop there when any of them was asked (the checkpoint is
+            # written by all of them together).
+            if trainer.strategy.reduce_boolean_decision(signum is not None, all=False) and signum is None:
+                signum = signal.SIGTERM
         if signum is None:
             return
         path = None
@@ -164,6 +171,11 @@ class EpochCheckpoint(ModelCheckpoint):
 
     def on_exception(self, trainer: pl.Trainer, pl_module: pl.LightningModule, exception: BaseException) -> None:
         self._restore_sigint()
+        if isinstance(exception, SIGTERMException) and self._may_save(trainer):
+            # Lightning's own stop of a DDP run on SIGTERM (rank 0's flag, shared at the start of a batch,
+            # all ranks stop together): the batches done so far go into last.ckpt like on our own stop
+            if self._last_global_step_saved != trainer.global_step:
+                self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
         super().on_exception(trainer, pl_module, exception)
 
     def teardown(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:

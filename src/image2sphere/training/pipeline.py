@@ -21,6 +21,7 @@ from pathlib import Path
 import lightning.pytorch as pl
 import torch
 from hydra.utils import instantiate
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from image2sphere.training.checkpoint import load_checkpoint
@@ -273,6 +274,12 @@ def _train(cfg: DictConfig) -> dict[str, float]:
         except TrainingInterrupted as e:
             _finish_loggers(loggers)
             _exit_interrupted(e)
+        except SIGTERMException:  # Lightning's stop of a DDP run on SIGTERM; EpochCheckpoint wrote last.ckpt
+            _finish_loggers(loggers)
+            last = output_dir / "checkpoints" / "last.ckpt"
+            checkpoint = str(last) if last.is_file() else None
+            epoch, step = trainer.current_epoch, trainer.global_step
+            _exit_interrupted(TrainingInterrupted(signal.SIGTERM, checkpoint, epoch, step))
         except NonFiniteLossError as e:
             last = output_dir / "checkpoints" / "last.ckpt"
             hint = (
@@ -342,6 +349,8 @@ def _hydra_choices(resumed: bool) -> tuple[dict[str, str] | None, list[str], dic
 
 
 def _exit_interrupted(e: TrainingInterrupted) -> None:
+    if is_secondary_rank():  # rank 0 says how to resume; Lightning stops all ranks when one fails
+        raise SystemExit(0)
     name = signal.Signals(e.signum).name
     if e.checkpoint:
         message = (

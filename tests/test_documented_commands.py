@@ -248,7 +248,7 @@ def test_extraction_finds_the_documented_commands():
     expected = [
         "python -m src.train",
         "python -m pytest",
-        'pip install -e ".[dev]"',
+        'pip install -e ".[dev,cluster]"',
         "pip install torch==2.13.0 torchvision==0.28.0",
         "python -m src.train dataset=symsol2 dataset.shape=cylO",
         "python -m src.train experiment=modelnet10 encoder.weights=IMAGENET1K_V2",

@@ -5,15 +5,9 @@ from __future__ import annotations
 import os
 import platform
 
+from image2sphere.data.common import available_cpus
+
 __all__ = ["available_cpus", "cpu_model", "load_line"]
-
-
-def available_cpus() -> int:
-    """CPUs this process may run on (its affinity mask; ``os.cpu_count()`` where there is none)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
 
 
 def cpu_model() -> str:

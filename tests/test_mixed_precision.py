@@ -59,13 +59,8 @@ LOOSE_RTOL = 5e-2
 
 
 @pytest.fixture(autouse=True)
-def _one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
+def _one_thread(single_thread):
+    """Every test with one intra-op thread (conftest's ``single_thread``)."""
 
 
 @functools.cache

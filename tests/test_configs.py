@@ -379,7 +379,8 @@ def test_every_experiment_composes_and_instantiates(tmp_path, experiment, fixtur
     assert (sched.step_size, sched.gamma, cfg.trainer.max_epochs) == (15, 0.1, 40)
     assert (cfg.dataset.batch_size, cfg.dataset.image_size) == (64, 224)
     assert (cfg.model.train_grid_level, cfg.model.eval_grid_level, cfg.lmax) == (3, 5, 6)
-    assert cfg.model.net.num_classes == 0 and cfg.model.net.n_subset == 20
+    # every projection point in training, not the paper's random 20 (docs/training_fidelity.md, "The band limit")
+    assert cfg.model.net.num_classes == 0 and cfg.model.net.n_subset is None
     dm = instantiate(cfg.dataset)
     net = instantiate(cfg.model.net)
     assert net.encoder.depth == depth
@@ -406,7 +407,7 @@ def test_encoder_keys_reach_the_network(tmp_path, experiment, model):
 
 
 FIDELITY = sorted(p.stem for p in (CONF / "experiment" / "fidelity").glob("*.yaml"))
-FIDELITY_KEYS = ("init", "projector_normalization", "so3_kernel", "activation_resolution")
+FIDELITY_KEYS = ("init", "projector_normalization", "so3_kernel", "activation_resolution", "n_subset")
 
 
 def test_fidelity_ablation_files_change_one_thing_each(tmp_path):
@@ -420,6 +421,7 @@ def test_fidelity_ablation_files_change_one_thing_each(tmp_path):
         "projector_normalization": "sqrt",
         "so3_kernel": "local",
         "activation_resolution": 8,
+        "n_subset": 20,  # the paper's subset, in every row of that ablation (the band-limit fix came later)
     }
     for name in set(FIDELITY) - {"before", "after"}:
         changed = [k for k in FIDELITY_KEYS if net[name][k] != before[k]]

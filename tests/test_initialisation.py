@@ -189,7 +189,9 @@ def test_short_training_learns_with_the_mean_projection_and_not_with_the_earlier
     repo = Path(__file__).resolve().parents[1]
     env = {**os.environ, "WANDB_SILENT": "true", "OMP_NUM_THREADS": "1"}  # as measured
     results = {}
-    for name, extra in (("new", []), ("old", ["model.net.projector_normalization=sqrt"])):
+    # the earlier projection: sqrt normalisation on the paper's 20 random points in training (all at test)
+    old = ["model.net.projector_normalization=sqrt", "model.net.n_subset=20"]
+    for name, extra in (("new", []), ("old", old)):
         run = tmp_path / name
         cmd = [sys.executable, "-m", "src.train", *SHORT_RUN, *extra, f"paths.data_dir={tmp_path / 'data'}",
                f"paths.log_dir={tmp_path / 'logs'}", f"hydra.run.dir={run}"]  # fmt: skip

@@ -60,8 +60,10 @@ class I2S(_FourierNetwork):
         so3_channels: channels of the hidden SO(3) signal (8 in the paper).
         n_so3_conv: 0, 1 (I2S) or 2 SO(3) convolutions after the S2 convolution.
         projector_level, n_subset, taper_deg, coverage, sigma: the spatial projector's HEALPix
-            level (2), points used per training pass (20; ``None`` for all), taper start (75 deg),
-            disk coverage (0.9) and Gaussian width (0.2, in units of half the map).
+            level (2), points used per training pass (``None``: all, as at test; the paper samples
+            20, whose coefficients are mostly sampling noise above degree 2 and stop training at
+            lmax 8 and 10, docs/training_fidelity.md), taper start (75 deg), disk coverage (0.9) and
+            Gaussian width (0.2, in units of half the map).
         harmonic_hidden: hidden width of the harmonic projector's MLP.
         s2_kernel_level: HEALPix level of the spatial S2 filter's points.
         so3_kernel_max_deg: support of the SO(3) filter around the identity (22.5 deg).
@@ -88,7 +90,7 @@ class I2S(_FourierNetwork):
         so3_channels: int = 8,
         n_so3_conv: int = 1,
         projector_level: int = 2,
-        n_subset: int | None = 20,
+        n_subset: int | None = None,
         taper_deg: float = 75.0,
         coverage: float = 0.9,
         sigma: float = 0.2,

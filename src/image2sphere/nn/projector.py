@@ -91,8 +91,10 @@ class SpatialS2Projector(nn.Module):
     Each grid point ``u_i`` reads the (1x1-convolved) feature map at ``P(u_i)`` by Gaussian weights
     over the feature cells whose centres lie inside the image's inscribed circle (the corner cells
     are never read), normalised to sum to one, and scaled by a taper that falls
-    linearly from 1 at ``taper_beta`` to 0 at ``max_beta``. In training a random subset of
-    ``n_subset`` grid points is used per forward pass (all of them in eval mode); the Fourier
+    linearly from 1 at ``taper_beta`` to 0 at ``max_beta``. With ``n_subset`` set, a random subset of
+    that many grid points is used per training pass (all of them in eval mode; the paper samples 20,
+    but their coefficients are mostly sampling noise above degree 2, which stops I2S from learning at
+    lmax 8 and 10: docs/training_fidelity.md); with ``None``, every point, always. The Fourier
     coefficients are the discrete projection over the ``n`` points used,
     ``mean_i f(u_i) Y(u_i)`` (``normalization="mean"``, the default: an estimate of the same
     coefficients whatever ``n``, so a model trained on random subsets and evaluated on all points
@@ -114,7 +116,7 @@ class SpatialS2Projector(nn.Module):
         taper_beta: float = math.radians(75),
         coverage: float = 0.9,
         sigma: float = 0.2,
-        n_subset: int | None = 20,
+        n_subset: int | None = None,
         learn_interpolation: bool = True,
         activation: bool = True,
         normalization: str = "mean",

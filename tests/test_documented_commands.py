@@ -34,7 +34,8 @@ changed or removed; the only additions (never for a key the command sets itself)
   batches and stops after the first batch with a failed job: a table's jobs 0 and last are two
   batches (the sweeper batches consecutive job numbers), so only job 0 gets to its download;
 * ``python benchmarks/grid_eval.py`` (about two minutes) runs until its level-3 comparison is printed,
-  ``python benchmarks/table_cost.py`` to its end (a job line for every job, a total per table);
+  ``python benchmarks/table_cost.py`` to its end (a job line for every job, a total per table),
+  ``python benchmarks/projection_noise.py`` to its end (a ratio per degree);
 * ``pip install`` lines are compared with what ``.ci/run`` installs; ``python -m pytest`` is not run
   inside the suite: ``.ci/run`` must end with exactly that command;
 * external tools (``SKIPPED``) are listed with the reason they are not run.
@@ -87,14 +88,21 @@ SKIPPED = {
 }
 
 PATH_PLACEHOLDERS = {"/data/symsol": "data/symsol", "/path/to/symsol": "data/symsol"}
-# a table's sweep directory as the documents name it, and the directory this test writes in its place
-TABLE_SWEEP = re.compile(r"logs/(table\d+)/multiruns/(?:<date>_<time>_<pid>|<sweep>)")
+# a table's sweep directory as the documents name it (its task name: tableN, or small_<x> for the table file
+# small/<x>), and the directory this test writes in its place
+TABLE_SWEEP = re.compile(r"logs/(table\d+|small_\w+)/multiruns/(?:<date>_<time>_<pid>|<sweep>)")
 SWEEP_NAME = "2025-01-01_00-00-00_4242"
-TABLE_SWEEP_DIR = re.compile(rf"logs/(table\d+)/multiruns/{SWEEP_NAME}")
+TABLE_SWEEP_DIR = re.compile(rf"logs/(table\d+|small_\w+)/multiruns/{SWEEP_NAME}")
+
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 PRETRAINED = re.compile(r"^encoder\.weights=(IMAGENET1K_V\d)$")
 CONFIG_ERRORS = ("not in struct", "ConfigAttributeError", "Could not override", "ConfigCompositionException",
                  "MissingConfigException", "Could not find")  # fmt: skip
+
+
+def table_of_task(task: str) -> str:
+    """The table file (``table=...``) whose sweeps land in ``logs/<task>/``: ``small_table7`` -> ``small/table7``."""
+    return task.replace("small_", "small/", 1) if task.startswith("small_") else task
 
 
 # ------------------------------------------------------------------------------------------ extraction
@@ -939,7 +947,7 @@ def _param(command: Command):
     comments: variants of the README's, which the quick run covers)."""
     words = shlex.split(command.text)
     slow = words[:2] in (["python", "benchmarks/grid_eval.py"], ["python", "benchmarks/table_cost.py"],
-                         ["python", "benchmarks/data.py"])  # fmt: skip
+                         ["python", "benchmarks/data.py"], ["python", "benchmarks/projection_noise.py"])  # fmt: skip
     slow = slow or not any(w.startswith("README.md:") for w in command.where) and _first_words(command.text) == "python"
     if words[:3] == ["python", "-m", "src.train"] and not any(PRETRAINED.match(w) for w in words):
         if table_of(words[3:]) is not None:  # its first and last job, unless it names its jobs
@@ -978,6 +986,13 @@ def test_documented_command(command: Command, fixtures_root, checkpoint_run, tmp
         readers = {"symsol", "modelnet10", "pascal3d", "symsol_rendered"}
         assert readers <= {line.split()[0] for line in proc.stdout.splitlines() if line.strip()}, proc.stdout
         return
+    if args[0] == "benchmarks/projection_noise.py":  # to the end: a ratio for every degree and image size
+        proc = run_in(ws, argv, timeout=600)
+        assert proc.returncode == 0 and "measured in" in proc.stdout, describe(argv, proc)
+        rows = [line.split() for line in proc.stdout.splitlines() if line[:1].isdigit()]
+        assert [int(r[0]) for r in rows] == list(range(len(rows))) and len(rows) >= 3, proc.stdout
+        assert all(float(v) > 0 for r in rows for v in r[1:]), proc.stdout
+        return
     assert args[0] == "-m", f"no runner for {text!r}"
     module, rest = args[1], args[2:]
     if module == "src.train":
@@ -1006,7 +1021,7 @@ def test_documented_command(command: Command, fixtures_root, checkpoint_run, tmp
         for run_dir in given.run_dirs:
             sweep = TABLE_SWEEP_DIR.fullmatch(run_dir)
             if sweep and not (ws.root / run_dir).exists():
-                write_table_sweep(ws.root / run_dir, sweep.group(1), given.dataset)
+                write_table_sweep(ws.root / run_dir, table_of_task(sweep.group(1)), given.dataset)
     proc = run_in(ws, argv)
     checks[module](argv, proc, rest if module.startswith("src.") else args, ws)
 

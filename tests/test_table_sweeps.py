@@ -72,7 +72,7 @@ def composed_run(table: str, job: list[str], index: int) -> Run:
     choices = OmegaConf.to_container(cfg.hydra.runtime.choices)
     config = OmegaConf.to_container(cfg, resolve=False)
     config.pop("hydra")
-    assert config["task_name"] == table
+    assert config["task_name"] == table.replace("/", "_")  # small/table7 runs as small_table7
     return Run(path=Path(f"{table}/{index}"), metrics={"acc15": 0.5}, choices=choices, config=config, overrides=job)
 
 
@@ -137,3 +137,46 @@ def test_job_numbers_that_do_not_exist_are_refused_before_anything_runs(tmp_path
     assert proc.returncode != 0
     assert "hydra.sweeper.jobs: job numbers [9] do not exist; this sweep has jobs 0..3" in proc.stderr
     assert not list(tmp_path.rglob("metrics.json")) and not list(tmp_path.rglob("*.ckpt"))
+
+
+# ------------------------------------------------------------------ the small-scale sweeps (conf/table/small/)
+def _flat(cfg: dict, prefix: str = "") -> dict[str, object]:
+    out = {}
+    for key, value in cfg.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def test_small_sweeps_train_every_setting_on_the_built_in_data_with_one_change_each():
+    """table=small/table7 and small/ablations: on the built-in data, 2 epochs, level-4 test grid; Table 7's
+    band limits, and every other setting one change from the default (the lmax 6 run of small/table7)."""
+    default = composed_run("small/table7", ["lmax=6"], 0)
+    base = _flat(default.config)
+    assert default.choices["dataset"] == "symsol_rendered" and default.choices["model"] == "i2s"
+    assert (base["trainer.max_epochs"], base["eval_grid_level"], base["lmax"]) == (2, 4, 6)
+    assert table_jobs("small/table7") == [[f"lmax={L}"] for L in (2, 4, 6, 8, 10)]
+    changed = {}
+    for i, job in enumerate(table_jobs("small/ablations")):
+        run = composed_run("small/ablations", job, i)
+        assert run.choices["dataset"] == "symsol_rendered", job
+        flat = _flat(run.config)
+        assert (flat["trainer.max_epochs"], flat["eval_grid_level"]) == (2, 4), job
+        differs = {k for k in set(base) | set(flat) if k not in ("task_name", "tags") and base.get(k) != flat.get(k)}
+        groups = {g for g in ("model", "encoder") if run.choices[g] != default.choices[g]}
+        changed[" ".join(job)] = (groups, differs)
+    # a mapping or a number of SO(3) convolutions: another model file, nothing else
+    for model in ("i2s_spatial_filter", "i2s_harmonic_projector_spatial_filter", "i2s_harmonic_projector",
+                  "fourier_mlp", "i2s_icosahedral", "i2s_no_so3_conv", "i2s_two_so3_conv"):  # fmt: skip
+        groups, differs = changed.pop(f"model={model}")
+        assert groups == {"model"} and all(k.startswith("model.") for k in differs), (model, differs)
+    groups, differs = changed.pop("encoder=resnet50")
+    assert groups == {"encoder"} and differs == {"encoder.depth"}, differs
+    for level in (2, 4):
+        groups, differs = changed.pop(f"train_grid_level={level}")
+        assert not groups and differs == {"train_grid_level"}, differs
+    assert changed.pop("model.net.n_subset=20 lmax=6") == (set(), {"model.net.n_subset"})
+    assert changed.pop("model.net.n_subset=20 lmax=8") == (set(), {"model.net.n_subset", "lmax"})
+    assert not changed, changed

@@ -659,7 +659,8 @@ def check_train(argv, proc, args: list[str], ws: Workspace) -> None:
     sweep = sweep_values(args)
     if table_of(args) is not None:  # the selected jobs of the table, in the directories of their numbers
         jobs, numbers, table = _job_dirs(ws, "multiruns"), table_selection(args), all_table_jobs(args)
-        assert {j.parent.parent.parent.name for j in jobs} == {table_of(args)}, f"not under logs/<table>: {jobs}"
+        task = table_of(args).replace("/", "_")  # the task name: table7, small_table7 for small/table7
+        assert {j.parent.parent.parent.name for j in jobs} == {task}, f"not under logs/<task>: {jobs}"
         assert sorted(int(j.name) for j in jobs) == numbers, f"job directories {jobs}, expected {numbers}" + info
         for job in jobs:
             assert (job / "metrics.json").is_file(), f"{job} has no metrics.json" + info

@@ -301,3 +301,18 @@ def test_gamma_logits_accepts_shared_pixels():
     torch.testing.assert_close(ev.gamma_logits(c, pix), ev.gamma_logits(c, pix[None].expand(2, -1)))
     full = ev.logits(c).view(2, ev.n_pix, ev.n_gamma)
     torch.testing.assert_close(ev.gamma_logits(c, pix), full[:, pix])
+
+
+def test_an_evaluator_first_built_under_inference_mode_still_trains():
+    """The evaluator is cached per process; when its first use is a validation loop (torch.inference_mode,
+    e.g. ``train_grid_level=4`` with ``val_grid_level`` following it), the training loss must still
+    backpropagate through it (it crashed with "Inference tensors cannot be saved for backward")."""
+    from image2sphere.so3.grid_eval import _cached
+
+    _cached.cache_clear()
+    with torch.inference_mode():
+        evaluator = get_grid_evaluator(3, 4)
+    coeffs = torch.randn(2, n_so3_coeffs(3), requires_grad=True)
+    evaluator.logsumexp(coeffs).sum().backward()
+    assert coeffs.grad is not None and bool(coeffs.grad.abs().sum() > 0)
+    _cached.cache_clear()

@@ -345,7 +345,10 @@ class HealpixGridEvaluator:
 @lru_cache(maxsize=16)
 @float32_region  # cached for later calls: the Wigner tables are never built under autocast
 def _cached(lmax: int, level: int, dtype: torch.dtype, device: str) -> HealpixGridEvaluator:
-    evaluator = HealpixGridEvaluator(lmax, level, dtype=dtype, device=device)
+    # cached for training too: never build its tables as inference tensors (the first call may come from a
+    # validation or test loop under torch.inference_mode, e.g. train_grid_level = val_grid_level = 4)
+    with torch.inference_mode(False):
+        evaluator = HealpixGridEvaluator(lmax, level, dtype=dtype, device=device)
     _log.info("SO(3) grid evaluator built: lmax %d, level %d, %s on %s (process %d)", lmax, level, dtype, device,
               os.getpid())  # fmt: skip
     return evaluator

@@ -44,15 +44,11 @@ def noise_to_signal(image_size: int, lmax: int, subset: int, draws: int, images_
     torch.manual_seed(0)
     net = I2S(ResNetEncoder(depth=18, weights=None), image_size=image_size, lmax=lmax, n_subset=subset).eval()
     projector = net.projector
+    torch.manual_seed(0)  # the subsets the projector draws in training mode
     with torch.no_grad():
-        signal = projector.project(net.features(images, None))  # [B, S, K] on every point
-        exact = torch.einsum("bsk,kj->bsj", signal, projector.Y) / projector.n_points  # [B, S, (L+1)^2]
-        noise = []
-        for _ in range(draws):
-            points = torch.randperm(projector.n_points, generator=g)[:subset]
-            estimate = torch.einsum("bsk,kj->bsj", signal[..., points], projector.Y[points]) / subset
-            noise.append(estimate - exact)
-        noise = torch.stack(noise)  # [draws, B, S, (L+1)^2]
+        features = net.features(images, None)
+        exact = projector.eval()(features)  # [B, S, (L+1)^2] on every point
+        noise = torch.stack([projector.train()(features) - exact for _ in range(draws)])  # [draws, B, S, (L+1)^2]
     ratios = []
     for l in range(lmax + 1):
         band = slice(l * l, (l + 1) ** 2)

@@ -3,10 +3,10 @@
 At lmax 8 and 10 I2S used to stay at the uniform distribution. The cause: with the paper's random
 subset of 20 projection points per training pass, the projection's Fourier coefficients are an
 estimate whose sampling noise is white over the degrees while the feature map's signal is smooth,
-so every degree above 2 is mostly noise, fresh at every step (noise/signal 22 at l = 6, 96 at
-l = 10 on the built-in data); the more degrees, the more of the logits are noise, and past lmax 6
-the network learns to shrink its whole signal instead of learning the pose. The default now
-projects on all points in training, as at test.
+so every degree above 2 is mostly noise, fresh at every step (noise/signal 32 at l = 6, 162 at
+l = 10 on the built-in data, benchmarks/projection_noise.py); the more degrees, the more of the
+logits are noise, and past lmax 6 the network learns to shrink its whole signal instead of
+learning the pose. The default now projects on all points in training, as at test.
 
 * quick: the default projection is deterministic in training (no sampling noise) and equals the
   test-time one; the paper's 20-point subset's noise grows with the degree past the signal.

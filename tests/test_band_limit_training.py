@@ -145,7 +145,9 @@ def test_short_training_learns_at_high_band_limits(lmax, single_thread):
 
 @pytest.mark.slow
 def test_short_training_with_the_twenty_point_subset_stays_uniform_at_lmax_8(single_thread):
-    """The same run with the paper's 20 random projection points per pass (the code before the fix)."""
+    """The same run with the paper's 20 random projection points per pass and a random last layer (the
+    code before the fixes)."""
     images, rotations = _cone_images(256, seed=0)
-    late = _late_loss(_train_losses(["lmax=8", "model.net.n_subset=20"], images, rotations))
+    before = ["lmax=8", "model.net.n_subset=20", "model.net.output_init=random"]
+    late = _late_loss(_train_losses(before, images, rotations))
     assert late > LOG_N - 0.3, f"lmax 8 with 20 points: training loss {late:.2f}, uniform {LOG_N:.2f}"

@@ -407,7 +407,7 @@ def test_encoder_keys_reach_the_network(tmp_path, experiment, model):
 
 
 FIDELITY = sorted(p.stem for p in (CONF / "experiment" / "fidelity").glob("*.yaml"))
-FIDELITY_KEYS = ("init", "projector_normalization", "so3_kernel", "activation_resolution", "n_subset")
+FIDELITY_KEYS = ("init", "projector_normalization", "so3_kernel", "activation_resolution", "n_subset", "output_init")
 
 
 def test_fidelity_ablation_files_change_one_thing_each(tmp_path):
@@ -422,6 +422,7 @@ def test_fidelity_ablation_files_change_one_thing_each(tmp_path):
         "so3_kernel": "local",
         "activation_resolution": 8,
         "n_subset": 20,  # the paper's subset, in every row of that ablation (the band-limit fix came later)
+        "output_init": "random",  # as was every layer then (the uniform start came with the band-limit fix)
     }
     for name in set(FIDELITY) - {"before", "after"}:
         changed = [k for k in FIDELITY_KEYS if net[name][k] != before[k]]

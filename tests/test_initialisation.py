@@ -7,6 +7,9 @@
 * The projector's coefficients do not depend on how many projection points are used
   (``normalization="mean"``): a random training subset estimates the all-points coefficients.
 * The original code's SO(3) kernel grid (``so3_tube_grid``) has the shape the ablation describes.
+* I2S's last convolution starts at zero (``output_init="zero"``): the first loss is exactly uniform's
+  while the signal entering that layer keeps its size. The tests of the other layers' scale draw it
+  at random (``output_init="random"``), which would otherwise hide them.
 """
 
 from __future__ import annotations
@@ -48,7 +51,7 @@ def build(variant: str, depth: int = 18, **kw) -> torch.nn.Module:
     torch.manual_seed(0)
     encoder = ResNetEncoder(depth=depth, weights=None)
     if variant == "fourier_mlp":
-        return FourierMLP(encoder, image_size=SIZE, lmax=6)
+        return FourierMLP(encoder, image_size=SIZE, lmax=6, **{"output_init": "random", **kw})
     options = {
         "i2s": {},
         "harmonic_projector": {"projector": "harmonic"},
@@ -58,7 +61,7 @@ def build(variant: str, depth: int = 18, **kw) -> torch.nn.Module:
         "tube_kernel": {"so3_kernel": "tube"},
         "fan_in_init": {"init": "fan_in"},
     }[variant]
-    return I2S(encoder, image_size=SIZE, lmax=6, **options, **kw)
+    return I2S(encoder, image_size=SIZE, lmax=6, **{"output_init": "random", **options, **kw})
 
 
 VARIANTS = [
@@ -83,6 +86,20 @@ def test_first_loss_is_close_to_uniform_for_every_variant(variant, single_thread
 def test_first_loss_is_close_to_uniform_for_every_encoder_depth(depth, single_thread):
     loss = first_loss(build("i2s", depth=depth), batch=4)
     assert 0.9 * LOG_N < loss < BOUND * LOG_N, f"resnet{depth}: first loss {loss:.2f}, uniform {LOG_N:.2f}"
+
+
+@pytest.mark.parametrize("variant", ["i2s", "spatial_filter", "no_so3_conv", "two_so3_conv"])
+def test_default_output_starts_uniform_with_the_signal_before_it_intact(variant, single_thread):
+    nets = {init: build(variant, output_init=init) for init in ("zero", "random")}  # the same seed
+    entering = {}
+    for init, net in nets.items():
+        last = net.so3_layers[-1] if len(net.so3_layers) else net.s2_conv
+        last.register_forward_hook(lambda module, args, out, init=init: entering.update({init: args[0]}))
+    losses = {init: first_loss(net) for init, net in nets.items()}
+    assert losses["zero"] == pytest.approx(LOG_N, abs=1e-4)
+    # every layer before the last one is drawn as with the random output, and carries the same signal
+    torch.testing.assert_close(entering["zero"], entering["random"])
+    assert entering["zero"].pow(2).mean() > 1e-3
 
 
 def test_initialisation_before_the_ablation_starts_far_above_uniform(single_thread):
@@ -190,7 +207,7 @@ def test_short_training_learns_with_the_mean_projection_and_not_with_the_earlier
     env = {**os.environ, "WANDB_SILENT": "true", "OMP_NUM_THREADS": "1"}  # as measured
     results = {}
     # the earlier projection: sqrt normalisation on the paper's 20 random points in training (all at test)
-    old = ["model.net.projector_normalization=sqrt", "model.net.n_subset=20"]
+    old = ["model.net.projector_normalization=sqrt", "model.net.n_subset=20", "model.net.output_init=random"]
     for name, extra in (("new", []), ("old", old)):
         run = tmp_path / name
         cmd = [sys.executable, "-m", "src.train", *SHORT_RUN, *extra, f"paths.data_dir={tmp_path / 'data'}",

@@ -27,6 +27,7 @@ __all__ = ["I2S", "FourierMLP"]
 
 PROJECTORS = ("spatial", "harmonic")
 SO3_KERNELS = ("local", "tube")
+OUTPUT_INITS = ("zero", "random")
 
 
 class _FourierNetwork(PoseNetwork):
@@ -77,6 +78,12 @@ class I2S(_FourierNetwork):
         so3_kernel: support of the SO(3) filter, ``"local"`` (rotations within ``so3_kernel_max_deg``
             of the identity, as the paper describes) or ``"tube"`` (the original code's grid, see
             :func:`~image2sphere.so3.so3_tube_grid`).
+        output_init: ``"zero"``: the last convolution (the last SO(3) convolution, or the S2
+            convolution when there is none) starts at zero, so the first prediction is exactly
+            uniform while every earlier layer carries its full signal; ``"random"``: drawn like the
+            others (the original code), whose random logits start the loss above uniform, and whose
+            first steps then shrink every layer's signal to flatten them: at lmax 8 and 10 that
+            delayed learning by a third of a 2-epoch run (docs/training_fidelity.md, "The band limit").
     """
 
     def __init__(
@@ -102,8 +109,11 @@ class I2S(_FourierNetwork):
         init: str = "unit",
         projector_normalization: str = "mean",
         so3_kernel: str = "local",
+        output_init: str = "zero",
     ):
         super().__init__(encoder, image_size, lmax, num_classes)
+        if output_init not in OUTPUT_INITS:
+            raise ValueError(f"output_init must be one of {OUTPUT_INITS}, got {output_init!r}")
         if so3_kernel not in SO3_KERNELS:
             raise ValueError(f"so3_kernel must be one of {SO3_KERNELS}, got {so3_kernel!r}")
         if projector not in PROJECTORS:
@@ -144,6 +154,9 @@ class I2S(_FourierNetwork):
                 SO3Conv(so3_channels, out, lmax=lmax, max_angle=max_angle, kernel=kernel, init=init),
             ]
         self.so3_layers = nn.Sequential(*layers)
+        if output_init == "zero":
+            last = self.so3_layers[-1] if n_so3_conv else self.s2_conv
+            nn.init.zeros_(last.weight)
 
     def forward(self, images: torch.Tensor, class_index: torch.Tensor | None = None) -> torch.Tensor:
         """Images ``[B, 3, H, W]`` -> SO(3) coefficients ``[B, n_so3_coeffs(lmax)]``."""
@@ -158,6 +171,8 @@ class FourierMLP(_FourierNetwork):
 
     Args:
         hidden: widths of the hidden layers.
+        output_init: ``"zero"``: the last layer starts at zero (the first prediction is uniform), as
+            I2S's last convolution; ``"random"``: drawn so that the first logits have about unit variance.
     """
 
     def __init__(
@@ -167,8 +182,11 @@ class FourierMLP(_FourierNetwork):
         lmax: int = 6,
         hidden: tuple[int, ...] | list[int] = (512,),
         num_classes: int = 0,
+        output_init: str = "zero",
     ):
         super().__init__(encoder, image_size, lmax, num_classes)
+        if output_init not in OUTPUT_INITS:
+            raise ValueError(f"output_init must be one of {OUTPUT_INITS}, got {output_init!r}")
         widths = [self.feature_channels, *hidden]
         layers: list[nn.Module] = []
         for a, b in zip(widths[:-1], widths[1:], strict=True):
@@ -178,7 +196,10 @@ class FourierMLP(_FourierNetwork):
         # variance v * n_so3_coeffs: scale the last layer (after a ReLU: Kaiming's gain 2 when hidden)
         # so that the initial logits have about unit variance and the first loss is close to uniform's.
         gain = 2.0 if hidden else 1.0
-        nn.init.normal_(last.weight, std=math.sqrt(gain / widths[-1] / n_so3_coeffs(lmax)))
+        if output_init == "random":
+            nn.init.normal_(last.weight, std=math.sqrt(gain / widths[-1] / n_so3_coeffs(lmax)))
+        else:
+            nn.init.zeros_(last.weight)
         nn.init.zeros_(last.bias)
         layers.append(last)
         self.mlp = nn.Sequential(*layers)

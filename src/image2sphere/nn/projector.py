@@ -17,6 +17,7 @@ import math
 
 import torch
 from e3nn import o3
+from e3nn.nn import S2Activation
 from torch import nn
 
 from image2sphere.so3.grid import s2_healpix_grid
@@ -176,12 +177,29 @@ class SpatialS2Projector(nn.Module):
 
 
 class HarmonicS2Projector(nn.Module):
-    """ "Fourier projection": global average pool, then an MLP straight to S2 Fourier coefficients.
+    """ "Fourier projection": global average pool, then an MLP straight to S2 Fourier coefficients,
+    then (``activation``) a ReLU on the sphere, as the spatial projection applies one to its samples.
+
+    The ReLU is e3nn's ``S2Activation``: the signal on a grid of ``activation_resolution`` points in
+    ``beta`` (default: 20, as the original code, or ``2 (lmax + 1) + 2`` where that is more), ReLU (scaled
+    by e3nn to keep a unit normal's second moment, about sqrt 2), back to the coefficients up to
+    ``lmax``. Its grids use e3nn's ``"norm"`` normalisation, which evaluates our component-normalised
+    coefficients up to one constant for every degree (``"component"`` would weight degree ``l`` by
+    ``1 / sqrt(2l + 1)``); the ReLU being positively homogeneous, the constant cancels on the way back.
+    As the spatial projection's ReLU, it makes each channel a non-negative signal.
 
     Input ``[B, in_channels, H, W]``; output ``[B, sphere_channels, (lmax+1)^2]``.
     """
 
-    def __init__(self, in_channels: int, sphere_channels: int = 64, lmax: int = 6, hidden_channels: int = 512):
+    def __init__(
+        self,
+        in_channels: int,
+        sphere_channels: int = 64,
+        lmax: int = 6,
+        hidden_channels: int = 512,
+        activation: bool = True,
+        activation_resolution: int | None = None,
+    ):
         super().__init__()
         self.lmax = check_lmax(lmax)
         self.sphere_channels = sphere_channels
@@ -191,9 +209,14 @@ class HarmonicS2Projector(nn.Module):
         nn.init.normal_(last.weight, std=1 / math.sqrt(hidden_channels * n_s2_coeffs(lmax)))
         nn.init.zeros_(last.bias)
         self.mlp = nn.Sequential(nn.Linear(in_channels, hidden_channels), nn.ReLU(), last)
+        # degree l has parity (-1)^l, as a function on the sphere
+        irreps = o3.Irreps.spherical_harmonics(lmax, p=-1)
+        res = max(20, 2 * (lmax + 1) + 2) if activation_resolution is None else activation_resolution
+        self.act = S2Activation(irreps, torch.relu, res, normalization="norm") if activation else nn.Identity()
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         if features.ndim != 4:
             raise ValueError(f"feature map must have shape (batch, channels, H, W), got {tuple(features.shape)}")
         pooled = features.mean(dim=(-1, -2))  # [B, C]
-        return self.mlp(pooled).view(len(features), self.sphere_channels, n_s2_coeffs(self.lmax))
+        coeffs = self.mlp(pooled).view(len(features), self.sphere_channels, n_s2_coeffs(self.lmax))
+        return self.act(coeffs)  # [B, S, (L+1)^2]

@@ -93,8 +93,7 @@ def test_default_output_starts_uniform_with_the_signal_before_it_intact(variant,
     nets = {init: build(variant, output_init=init) for init in ("zero", "random")}  # the same seed
     entering = {}
     for init, net in nets.items():
-        last = net.so3_layers[-1] if len(net.so3_layers) else net.s2_conv
-        last.register_forward_hook(lambda module, args, out, init=init: entering.update({init: args[0]}))
+        net.output_layer.register_forward_hook(lambda module, args, out, init=init: entering.update({init: args[0]}))
     losses = {init: first_loss(net) for init, net in nets.items()}
     assert losses["zero"] == pytest.approx(LOG_N, abs=1e-4)
     # every layer before the last one is drawn as with the random output, and carries the same signal

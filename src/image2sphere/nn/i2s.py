@@ -82,8 +82,8 @@ class I2S(_FourierNetwork):
             convolution when there is none) starts at zero, so the first prediction is exactly
             uniform while every earlier layer carries its full signal; ``"random"``: drawn like the
             others (the original code), whose random logits start the loss above uniform, and whose
-            first steps then shrink every layer's signal to flatten them: at lmax 8 and 10 that
-            delayed learning by a third of a 2-epoch run (docs/training_fidelity.md, "The band limit").
+            first steps then go into shrinking that random output: at lmax 8 the loss stayed at
+            uniform for 80 of the first epoch's 144 steps (docs/training_fidelity.md, "The band limit").
     """
 
     def __init__(
@@ -155,8 +155,12 @@ class I2S(_FourierNetwork):
             ]
         self.so3_layers = nn.Sequential(*layers)
         if output_init == "zero":
-            last = self.so3_layers[-1] if n_so3_conv else self.s2_conv
-            nn.init.zeros_(last.weight)
+            nn.init.zeros_(self.output_layer.weight)
+
+    @property
+    def output_layer(self) -> nn.Module:
+        """The convolution that gives the output: the last SO(3) convolution, or the S2 one if there is none."""
+        return self.so3_layers[-1] if len(self.so3_layers) else self.s2_conv
 
     def forward(self, images: torch.Tensor, class_index: torch.Tensor | None = None) -> torch.Tensor:
         """Images ``[B, 3, H, W]`` -> SO(3) coefficients ``[B, n_so3_coeffs(lmax)]``."""

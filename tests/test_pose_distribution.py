@@ -193,3 +193,42 @@ def test_every_grid_point_is_a_rotation_of_the_generic_chunks():
         torch.testing.assert_close(rotations, ref)
         total += len(rotations)
     assert starts[0] == 0 and total == math.prod(so3_grid_size(2))
+
+
+def test_constants_cached_during_inference_serve_training_later():
+    """The per-process caches of grids, index tables and quadrature rules are filled by whichever call comes
+    first, often a test loop under ``torch.inference_mode``; what they hold must still be usable by a later
+    training step (an inference tensor saved for backward raises). Found when an evaluation and a training
+    ran in one process: a matrix Fisher mode on the grid failed after an earlier evaluation."""
+    import image2sphere.distributions.matrix_fisher as matrix_fisher
+    import image2sphere.metrics as metrics
+    import image2sphere.so3.grid_eval as grid_eval
+    import image2sphere.so3.wigner as wigner
+    from image2sphere.distributions.matrix_fisher import MatrixFisher
+
+    caches = {
+        pose_distribution._grid_rotations: (2, torch.float32, "cpu"),
+        metrics._flat_grid: (2, torch.float32, "cpu"),
+        matrix_fisher._half_interval_rule: (torch.device("cpu"), torch.float64),
+        wigner._so3_layout: (2,),
+    }
+    for cached, args in caches.items():
+        cached.cache_clear()
+        with torch.inference_mode():
+            value = cached(*args)
+        tensors = value if isinstance(value, tuple) else (value,)
+        assert not any(t.is_inference() for t in tensors), cached.__name__
+        cached.cache_clear()
+    grid_eval._cached.cache_clear()
+    with torch.inference_mode():
+        evaluator = grid_eval._cached(2, 2, torch.float32, "cpu")
+    assert not any(t.is_inference() for t in vars(evaluator).values() if isinstance(t, torch.Tensor))
+    grid_eval._cached.cache_clear()
+    # the symptom: an evaluation under inference mode, then a differentiable mode search on the same grid
+    pose_distribution._grid_rotations.cache_clear()
+    F = torch.randn(2, 3, 3, dtype=torch.float32)
+    with torch.inference_mode():
+        MatrixFisher(F).mode(2)
+    F.requires_grad_(True)
+    MatrixFisher(F).grid_logsumexp_and_max(2)[0].sum().backward()
+    assert F.grad is not None and torch.isfinite(F.grad).all()

@@ -26,13 +26,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from functools import lru_cache
 from typing import NamedTuple
 
 import torch
 
 from image2sphere.data.common import stable_seed
 from image2sphere.distributions.base import LOG_UNIFORM_DENSITY, PoseDistribution
+from image2sphere.precision import constant_cache
 from image2sphere.so3.grid import check_level, so3_grid_size, so3_healpix_grid, so3_healpix_nearest_index
 from image2sphere.so3.pose_distribution import tie_tolerance
 from image2sphere.so3.rotations import geodesic_distance_deg
@@ -240,7 +240,7 @@ def hdr_coverage_counts(hdr_level: torch.Tensor, mask: torch.Tensor | None = Non
     return inside.sum(dim=1)
 
 
-@lru_cache(maxsize=4)
+@constant_cache(maxsize=4)
 def _flat_grid(level: int, dtype: torch.dtype, device: str) -> torch.Tensor:
     return so3_healpix_grid(level, dtype=dtype).reshape(-1, 9).to(device)  # [N, 9]
 

@@ -42,6 +42,7 @@ __all__ = [
     "REDUCED_DTYPES",
     "AutocastState",
     "autocast_enabled",
+    "constant_cache",
     "current_autocast",
     "encoder_autocast",
     "float32_methods",
@@ -190,3 +191,21 @@ def float32_methods(cls: type, names: tuple[str, ...] | None = None) -> type:
             continue
         setattr(cls, name, wrapped)
     return cls
+
+
+def constant_cache(maxsize: int | None = 8) -> Callable[[F], F]:
+    """``functools.lru_cache`` for functions that build constant tensors (grids, index tables, quadrature
+    rules) once per process, whatever context the first call comes from: in float32 under any autocast
+    (:func:`float32_region`), and never as inference tensors. A first call from a test or validation loop
+    (``torch.inference_mode``) would otherwise cache an inference tensor, and every later training step
+    that saves it for backward would fail ("Inference tensors cannot be saved for backward")."""
+
+    def decorate(fn: F) -> F:
+        @functools.wraps(fn)
+        def build(*args, **kwargs):
+            with torch.inference_mode(False):
+                return fn(*args, **kwargs)
+
+        return functools.lru_cache(maxsize=maxsize)(float32_region(build))
+
+    return decorate

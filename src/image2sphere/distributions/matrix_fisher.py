@@ -44,13 +44,12 @@ distributions"); the acceptance rate is at least ~28% at any concentration.
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 
 import numpy as np
 import torch
 
 from image2sphere.distributions.base import PoseDistribution
-from image2sphere.precision import float32_region
+from image2sphere.precision import constant_cache
 from image2sphere.so3.rotations import quaternion_to_matrix
 
 __all__ = [
@@ -130,8 +129,7 @@ class _I0eNonNegative(torch.autograd.Function):
         return grad * (torch.special.i1e(x) - value)
 
 
-@lru_cache(maxsize=8)
-@float32_region  # cached for later calls: never built under autocast
+@constant_cache(maxsize=8)
 def _half_interval_rule(device: torch.device, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
     """Nodes ``(K,)`` and log weights ``(K,)`` of a composite Gauss-Legendre rule on ``[0, 1]``,
     graded geometrically towards 0."""

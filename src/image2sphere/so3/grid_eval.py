@@ -37,11 +37,10 @@ import logging
 import math
 import os
 from collections.abc import Callable
-from functools import lru_cache
 
 import torch
 
-from image2sphere.precision import float32_region
+from image2sphere.precision import constant_cache
 from image2sphere.so3.grid import (
     MAX_DENSE_LEVEL,
     MAX_STREAMED_LEVEL,
@@ -342,13 +341,9 @@ class HealpixGridEvaluator:
         return T
 
 
-@lru_cache(maxsize=16)
-@float32_region  # cached for later calls: the Wigner tables are never built under autocast
+@constant_cache(maxsize=16)  # for training too, whether the first call comes from a test loop or under autocast
 def _cached(lmax: int, level: int, dtype: torch.dtype, device: str) -> HealpixGridEvaluator:
-    # cached for training too: never build its tables as inference tensors (the first call may come from a
-    # validation or test loop under torch.inference_mode, e.g. train_grid_level = val_grid_level = 4)
-    with torch.inference_mode(False):
-        evaluator = HealpixGridEvaluator(lmax, level, dtype=dtype, device=device)
+    evaluator = HealpixGridEvaluator(lmax, level, dtype=dtype, device=device)
     _log.info("SO(3) grid evaluator built: lmax %d, level %d, %s on %s (process %d)", lmax, level, dtype, device,
               os.getpid())  # fmt: skip
     return evaluator

@@ -36,7 +36,6 @@ and no density.
 
 from __future__ import annotations
 
-import functools
 import math
 import numbers
 from collections.abc import Callable
@@ -44,7 +43,7 @@ from typing import NamedTuple
 
 import torch
 
-from image2sphere.precision import float32_methods, float32_region
+from image2sphere.precision import constant_cache, float32_methods
 from image2sphere.so3.grid import (
     MAX_DENSE_LEVEL,
     check_level,
@@ -72,8 +71,7 @@ LOG_UNIFORM_DENSITY = -math.log(math.pi**2)  # -2.2894
 CHUNK_POINTS = 1 << 16
 
 
-@functools.lru_cache(maxsize=2)
-@float32_region  # cached: never built under autocast
+@constant_cache(maxsize=2)
 def _grid_rotations(level: int, dtype: torch.dtype, device: str) -> torch.Tensor:
     """The rotations of the grid of ``level`` ``(N, 3, 3)``, pixel-major (85 MB at level 5 in float32)."""
     return so3_healpix_grid(level, dtype=dtype).to(device)

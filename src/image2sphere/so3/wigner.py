@@ -14,11 +14,11 @@ from __future__ import annotations
 
 import contextlib
 import math
-from functools import lru_cache
 
 import torch
 from e3nn import o3
 
+from image2sphere.precision import constant_cache
 from image2sphere.so3.rotations import check_rotation_matrix, matrix_to_angles
 
 __all__ = [
@@ -83,7 +83,7 @@ def so3_layout(lmax: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     return _so3_layout(check_lmax(lmax))
 
 
-@lru_cache(maxsize=32)
+@constant_cache(maxsize=32)
 def _so3_layout(lmax: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     ls, ms, ns = [], [], []
     for l in range(lmax + 1):

@@ -1,13 +1,25 @@
-"""Shared fixtures and independent reference implementations for the SO(3) tests.
+"""Shared fixtures of the whole suite, and independent reference implementations for the SO(3) tests.
 
-The references here deliberately avoid the package's own code paths: they call e3nn, healpy and
-plain dense linear algebra directly.
+* Runs of the entry points (``python -m src.train ...``): :func:`run_train` with the tiny settings
+  ``TINY`` (32 px images, lmax 2, coarse grids, a narrow network) runs in this process
+  (:func:`image2sphere.testing.run_command`), so the suite pays the imports once; a test whose subject
+  is the process itself (a signal, a kill, DDP's second process) asks for ``own_process=True``.
+* Session fixtures, built once and shared read-only: ``published_fixtures`` (tiny copies of every
+  dataset in its published layout) and ``tiny_run`` (one epoch of the tiny default run, with its
+  checkpoint, plots and TensorBoard events).
+* The SO(3) references deliberately avoid the package's own code paths: they call e3nn, healpy and
+  plain dense linear algebra directly.
 """
 
 from __future__ import annotations
 
+import json
 import math
+import os
+import subprocess
+import sys
 from functools import lru_cache
+from pathlib import Path
 
 import healpy
 import numpy as np
@@ -16,6 +28,101 @@ import torch
 from e3nn import o3
 
 from image2sphere.so3.wigner import default_dtype
+from image2sphere.testing import run_command
+
+REPO = Path(__file__).resolve().parents[1]
+
+# Small and fast: 32 px images, lmax 2, coarse grids, a narrow network.
+TINY = [
+    "dataset.render.train=10",
+    "dataset.render.test=3",
+    "dataset.val_per_shape=2",
+    "dataset.image_size=32",
+    "dataset.batch_size=6",
+    "lmax=2",
+    "train_grid_level=2",
+    "eval_grid_level=3",
+    "model.spread_grid_level=2",
+    "model.net.sphere_channels=16",
+    "model.net.so3_channels=4",
+    "model.net.activation_resolution=4",
+    "trainer.accelerator=cpu",
+    "trainer.num_sanity_val_steps=0",
+    "callbacks.progress_bar.refresh_rate=0",
+]
+# smaller batches and evaluation grids than the paper's, so that a smoke run of an experiment takes seconds
+SMOKE = [
+    "trainer.fast_dev_run=true",
+    "dataset.batch_size=4",
+    "dataset.num_workers=0",
+    "dataset.pin_memory=false",
+    "eval_grid_level=3",
+    "model.spread_grid_level=2",
+    "logger=none",
+]
+# the environment of a run (in this process it is set for the run and restored afterwards)
+ENV = {**os.environ, "WANDB_SILENT": "true", "OMP_NUM_THREADS": "2"}
+
+
+def train_command(args: list[str], data_dir: Path, log_dir: Path) -> list[str]:
+    """``python -m src.train`` with ``TINY`` (the keys ``args`` set themselves left out) and the paths."""
+    flags = [a for a in args if a.startswith("-")]
+    overrides = [a for a in args if not a.startswith("-")]
+    keys = {a.split("=")[0] for a in overrides}
+    base = [a for a in TINY if a.split("=")[0] not in keys]  # args win over the tiny defaults
+    paths = [f"paths.data_dir={data_dir}", f"paths.log_dir={log_dir}"]
+    return [sys.executable, "-m", "src.train", *flags, *base, *paths, *overrides]
+
+
+def run_module(argv: list[str], check: bool = True, own_process: bool = False, env: dict | None = None,
+               cwd: Path = REPO, timeout: float = 900) -> subprocess.CompletedProcess:  # fmt: skip
+    """``argv`` (``[python, -m, module, ...]``) from the repository root: in this process, or as a process of
+    its own when ``own_process`` (or when the command starts processes itself, e.g. DDP). ``check``: a
+    non-zero exit fails the test with the command's output."""
+    env = ENV if env is None else env
+    if own_process:
+        proc = subprocess.run(argv, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
+    else:
+        proc = run_command(argv, cwd=cwd, env=env, timeout=timeout, extra_path=[REPO])
+    if check and proc.returncode != 0:
+        raise AssertionError(
+            f"{' '.join(map(str, argv))} failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
+        )
+    return proc
+
+
+def run_train(args: list[str], data_dir: Path, log_dir: Path, check: bool = True,
+              own_process: bool = False) -> subprocess.CompletedProcess:  # fmt: skip
+    """``python -m src.train`` with the tiny settings (see :func:`train_command` and :func:`run_module`)."""
+    return run_module(train_command(args, data_dir, log_dir), check=check, own_process=own_process)
+
+
+def read_metrics(run_dir: Path) -> dict:
+    return json.loads((run_dir / "metrics.json").read_text())
+
+
+@pytest.fixture(scope="session")
+def published_fixtures(tmp_path_factory) -> Path:
+    """Tiny copies of every dataset in its published layout (``python -m image2sphere.data.fixtures``),
+    under the folder names the configs use. Shared by the whole session: never write into it."""
+    from image2sphere.data.fixtures.__main__ import main
+
+    root = tmp_path_factory.mktemp("published") / "data"
+    assert main([str(root)]) == 0
+    return root
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory) -> Path:
+    """The run directory of one epoch of the tiny default run (``checkpoints/last.ckpt``, ``metrics.json``,
+    the plots of 2 validation images and TensorBoard events). Shared by the whole session: read only."""
+    root = tmp_path_factory.mktemp("tiny_run")
+    run = root / "run"
+    plots = ["callbacks.so3_plot.every_n_epochs=1", "callbacks.so3_plot.n_images=2", "callbacks.so3_plot.level=2"]
+    run_train(["trainer.max_epochs=1", "logger=tensorboard", *plots, f"hydra.run.dir={run}"], root / "data",
+              root / "logs")  # fmt: skip
+    assert (run / "checkpoints" / "last.ckpt").is_file() and (run / "metrics.json").is_file()
+    return run
 
 
 @pytest.fixture

@@ -26,8 +26,8 @@ import torch
 from torch import nn
 from torch.utils.data import DataLoader, TensorDataset
 
+from conftest import ENV, REPO, TINY, run_train, train_command
 from image2sphere.training.checkpointing import AtomicCheckpointIO, EpochCheckpoint
-from test_train_entry import ENV, REPO, TINY, run_train, train_command
 
 STEPS_PER_EPOCH_BS2 = 8  # 2 shapes x (10 - 2 validation) images in batches of 2
 

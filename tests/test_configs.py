@@ -23,14 +23,10 @@ def options(group: str) -> list[str]:
     return sorted(p.stem for p in (CONF / group).glob("*.yaml"))
 
 
-@pytest.fixture(scope="module")
-def fixture_data(tmp_path_factory) -> Path:
-    """Tiny copies of every dataset in its published layout, under the folder names the configs use."""
-    from image2sphere.data.fixtures.__main__ import main
-
-    root = tmp_path_factory.mktemp("fixtures") / "data"
-    assert main([str(root)]) == 0
-    return root
+@pytest.fixture
+def fixture_data(published_fixtures) -> Path:
+    """Tiny copies of every dataset in its published layout (the session's, see conftest)."""
+    return published_fixtures
 
 
 def compose_cfg(tmp_path: Path, overrides: list[str] = (), data_dir: Path | None = None) -> DictConfig:

@@ -10,11 +10,10 @@ from image2sphere.data.fixtures.__main__ import main as write_fixtures
 from image2sphere.data.verify import main as verify
 
 
-@pytest.fixture(scope="module")
-def fixtures(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("cli") / "data"
-    assert write_fixtures([str(root)]) == 0
-    return root
+@pytest.fixture
+def fixtures(published_fixtures) -> Path:
+    """The session's fixtures (conftest), written by ``write_fixtures`` (its exit status 0 asserted there)."""
+    return published_fixtures
 
 
 def test_fixture_command_refuses_an_existing_root(fixtures, capsys):

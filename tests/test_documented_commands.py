@@ -49,10 +49,12 @@ from __future__ import annotations
 
 import argparse
 import ast
+import functools
 import itertools
 import os
 import re
 import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -62,12 +64,14 @@ from pathlib import Path
 
 import pytest
 import yaml
+from omegaconf import open_dict
 from PIL import Image
 
 import image2sphere  # noqa: F401  (before torchvision, which check_pretrained_download imports)
+from conftest import ENV, SMOKE, TINY
+from image2sphere.testing import needs_own_process, run_command
 from test_table_sweeps import composed_run, table_jobs
 from test_tables import make_run
-from test_train_entry import ENV, SMOKE, TINY, run_train
 
 REPO = Path(__file__).resolve().parents[1]
 README = REPO / "README.md"
@@ -335,21 +339,18 @@ def test_placeholder_arguments_name_real_keys():
 
 # ------------------------------------------------------------------------------------------ fixtures
 @pytest.fixture(scope="module")
-def fixtures_root(tmp_path_factory) -> Path:
-    from image2sphere.data.fixtures.__main__ import main
-
+def fixtures_root(published_fixtures, tmp_path_factory) -> Path:
+    """A copy of the session's dataset fixtures that the commands may write into (``data/`` of the workspace:
+    the built-in set rendered there, ``python -m image2sphere.data.render ... data/x``)."""
     root = tmp_path_factory.mktemp("documented") / "data"
-    assert main([str(root)]) == 0
+    shutil.copytree(published_fixtures, root, symlinks=True)
     return root
 
 
 @pytest.fixture(scope="module")
-def checkpoint_run(fixtures_root, tmp_path_factory) -> Path:
-    """A run directory with ``checkpoints/last.ckpt``: one epoch of the tiny default run."""
-    run = tmp_path_factory.mktemp("checkpoint") / "tiny_run"
-    run_train(["trainer.max_epochs=1", "logger=none", f"hydra.run.dir={run}"], fixtures_root, run.parent / "logs")
-    assert (run / "checkpoints" / "last.ckpt").is_file()
-    return run
+def checkpoint_run(tiny_run) -> Path:
+    """A run directory with ``checkpoints/last.ckpt``: the session's tiny run (one epoch of the tiny default run)."""
+    return tiny_run
 
 
 @dataclass
@@ -413,8 +414,15 @@ def write_image(path: Path) -> None:
     Image.fromarray(pixels).save(path)
 
 
-def run_in(ws: Workspace, argv: list[str], timeout: float = 600) -> subprocess.CompletedProcess:
-    return subprocess.run(argv, cwd=ws.root, env=ws.env, capture_output=True, text=True, timeout=timeout)
+def run_in(
+    ws: Workspace, argv: list[str], timeout: float = 600, env: dict | None = None
+) -> subprocess.CompletedProcess:
+    """``argv`` from the workspace: ``python -m ...`` in this process (imports paid once per session; a
+    command that starts processes itself, e.g. DDP, as a process of its own), a script as a subprocess."""
+    env = ws.env if env is None else env
+    if argv[1] != "-m":
+        return subprocess.run(argv, cwd=ws.root, env=env, capture_output=True, text=True, timeout=timeout)
+    return run_command(argv, cwd=ws.root, env=env, timeout=timeout, extra_path=[REPO])
 
 
 def describe(argv: list[str], proc: subprocess.CompletedProcess | None = None, out: str = "", err: str = "") -> str:
@@ -507,14 +515,93 @@ def job_overrides(args: list[str]) -> list[list[str]]:
     return [fixed + list(combo) for combo in combos]
 
 
-def compose_train(overrides: list[str]):
-    """``conf/train.yaml`` composed in this process with ``overrides`` (not resolved)."""
+def compose_train(overrides: list[str], hydra_config: bool = False):
+    """``conf/train.yaml`` composed in this process with ``overrides`` (not resolved); with ``hydra_config``
+    the ``hydra`` section too (its ``runtime.choices``: the option of every group)."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        return compose(config_name="train", overrides=overrides)
+        return compose(config_name="train", overrides=overrides, return_hydra_config=hydra_config)
+
+
+# the modes of python -m src.train that run other code than a plain run, whatever the groups' options
+MODE_KEYS = ("ckpt_path", "hparams_search", "table", "debug", "hydra.sweeper.jobs", "hydra.sweeper.n_trials")
+# the groups whose option decides how a run is launched; the others choose what is trained (the model, data
+# and encoder of every experiment, model and dataset are trained end to end by test_train_entry,
+# test_methods_entry and test_table_sweeps). No experiment, model or dataset file chooses one of these
+# (test_launch_groups_are_chosen_only_on_the_command_line_or_by_a_mode), so the command line says it all.
+LAUNCH_GROUPS = ("hydra/launcher", "hydra/sweeper", "trainer", "logger")
+
+
+@functools.cache
+def code_path(text: str) -> tuple | None:
+    """How a documented ``python -m src.train`` command runs: its modes (a sweep, a resume, a search and of
+    which kind, a table, a debug setting), how it is launched (launcher, sweeper, trainer, logger),
+    pretrained weights, whether it starts processes of its own, and whether it has arguments at all (the
+    headline runs the real default config). Commands with the same code path differ in what they train
+    (``experiment=...``, ``model=...``, ``lmax=8``), which other tests run end to end; the first of them is
+    run here, the others composed and checked (:func:`check_composed_train`). None for any other command."""
+    words = shlex.split(text)
+    if words[:3] != ["python", "-m", "src.train"]:
+        return None
+    args = words[3:]
+    modes = tuple(sorted({override_key(a) for a in args if override_key(a) in MODE_KEYS} |
+                         {a for a in args if a.startswith("-")}))  # fmt: skip
+    launch = tuple(sorted(a for a in args if override_key(a) in LAUNCH_GROUPS))
+    if needs_own_process(["python", *words[1:]]):  # DDP and the joblib launcher: one runs here, test_scaling
+        return ("own process",)  # runs each of them (a sweep of DDP jobs, the local launcher) on its own
+    weights = any(PRETRAINED.match(a) for a in args)
+    return (bool(args), modes, optuna_search(args), launch, weights)
+
+
+def test_launch_groups_are_chosen_only_on_the_command_line_or_by_a_mode():
+    """What :func:`code_path` assumes: only the files of the modes (``table``, ``hparams_search``, ``debug``)
+    choose a launch group's option, never an experiment, model or dataset file."""
+    choosers = set()
+    for path in (REPO / "conf").rglob("*.yaml"):
+        defaults = (yaml.safe_load(path.read_text()) or {}).get("defaults", []) if path.read_text() else []
+        for entry in defaults if isinstance(defaults, list) else []:
+            if isinstance(entry, dict) and any(str(k).replace("override ", "").strip("/") in LAUNCH_GROUPS
+                                               for k in entry):  # fmt: skip
+                choosers.add(path.relative_to(REPO / "conf").parts[0])
+    assert choosers and choosers <= {"table", "hparams_search", "debug", "train.yaml", "eval.yaml", "predict.yaml"}
+
+
+def runs_for_real(command: Command) -> bool:
+    """The first command (README first, then docs/, then config comments) of each :func:`code_path` is run;
+    the others are composed and checked."""
+    path = code_path(command.text)
+    return path is None or next(c for c in COMMANDS if code_path(c.text) == path) is command
+
+
+def check_composed_train(argv: list[str], args: list[str]) -> None:
+    """A documented ``python -m src.train`` that another documented command's run covers (same code path):
+    every job's config composes with the documented arguments (and this test's additions), each documented
+    key and option is in it, and its values pass the run's own checks (``check_train_config``)."""
+    from hydra.core.hydra_config import HydraConfig
+    from omegaconf import OmegaConf
+
+    from image2sphere.training import register_resolvers
+    from image2sphere.training.run_config import check_train_config
+
+    register_resolvers()
+    overrides = [a for a in args if "=" in a and not a.startswith("-")]
+    additions = [a for a in argv[3 + len(args) :] if "=" in a and not override_key(a).startswith("hydra.sweeper.")]
+    sweep = sweep_values(args)
+    for job in job_overrides(args):
+        cfg = compose_train([*job, *[a for a in additions if override_key(a) not in {override_key(j) for j in job}]],
+                            hydra_config=True)  # fmt: skip
+        choices = OmegaConf.to_container(cfg.hydra.runtime.choices)
+        HydraConfig.instance().set_config(cfg)
+        try:
+            check_train_config(cfg)
+        finally:
+            HydraConfig.instance().cfg = None
+        with open_dict(cfg):
+            del cfg["hydra"]
+        assert_overrides_applied(OmegaConf.to_container(cfg), choices, overrides, sweep)
 
 
 def train_additions(args: list[str], ws: Workspace) -> list[str]:
@@ -561,9 +648,10 @@ def _select(cfg: dict, key: str):
     return node
 
 
-def assert_overrides_applied(config_file: Path, choices: dict, overrides: list[str], sweep: dict) -> None:
-    """Each documented ``key=value`` (not swept) is in the run's config, each ``group=option`` chosen."""
-    cfg = yaml.safe_load(config_file.read_text())
+def assert_overrides_applied(config: Path | dict, choices: dict, overrides: list[str], sweep: dict) -> None:
+    """Each documented ``key=value`` (not swept) is in the run's config (its ``.hydra/config.yaml``, or the
+    composed config), each ``group=option`` chosen."""
+    cfg = config if isinstance(config, dict) else yaml.safe_load(config.read_text())
     for arg in overrides:
         key, value = override_key(arg), arg.split("=", 1)[1]
         if key in sweep or key in ("ckpt_path", "hparams_search") or key.startswith(("paths.", "hydra.")):
@@ -892,7 +980,7 @@ def check_slurm_submission(argv: list[str], args: list[str], ws: Workspace) -> N
     for tool in ("sbatch", "srun"):
         (bin_dir / tool).chmod(0o755)
     env = {**ws.env, "PATH": f"{bin_dir}{os.pathsep}{ws.env['PATH']}"}
-    proc = subprocess.run(argv, cwd=ws.root, env=env, capture_output=True, text=True, timeout=300)
+    proc = run_in(ws, argv, timeout=300, env=env)
     info = describe(argv, proc)
     assert (ws.root / "job.sh").is_file(), "nothing was submitted" + info
     script = (ws.root / "job.sh").read_text()
@@ -947,6 +1035,8 @@ def _param(command: Command):
     two unless it names its jobs), and commands that the README does not show (docs/ and config
     comments: variants of the README's, which the quick run covers)."""
     words = shlex.split(command.text)
+    if not runs_for_real(command):  # composed and checked only: quick
+        return pytest.param(command, id=command.text)
     slow = words[:2] in (["python", "benchmarks/grid_eval.py"], ["python", "benchmarks/table_cost.py"],
                          ["python", "benchmarks/data.py"], ["python", "benchmarks/projection_noise.py"])  # fmt: skip
     slow = slow or not any(w.startswith("README.md:") for w in command.where) and _first_words(command.text) == "python"
@@ -997,11 +1087,13 @@ def test_documented_command(command: Command, fixtures_root, checkpoint_run, tmp
     assert args[0] == "-m", f"no runner for {text!r}"
     module, rest = args[1], args[2:]
     if module == "src.train":
-        render_documented_sets(rest, ws)
         weights = [PRETRAINED.match(a).group(1) for a in rest if PRETRAINED.match(a)]
         argv += train_additions(rest, ws)
+        if not runs_for_real(command):
+            return check_composed_train(argv, rest)
         if "hydra/launcher=slurm" in rest:
             return check_slurm_submission(argv, rest, ws)
+        render_documented_sets(rest, ws)
         proc = run_in(ws, argv)
         if weights:
             return check_pretrained_download(argv, proc, rest, weights[0])
@@ -1094,7 +1186,9 @@ def test_markdown_python_block(block, fixtures_root, checkpoint_run, tmp_path):
             write_image(ws.root / node.value)
     assert "<" not in re.sub(r"#.*", "", block), f"a placeholder this test does not know:\n{block}"
     code, claims = with_claim_checks(block)
-    argv = [sys.executable, "-c", code]
-    proc = run_in(ws, argv, timeout=600)
-    assert proc.returncode == 0, describe(["python", "-c", "<documented block>"], proc) + "\n" + code
+    script = ws.root / "documented_block.py"
+    script.write_text(code)
+    argv = [sys.executable, str(script)]
+    proc = run_command(argv, cwd=ws.root, env=ws.env, extra_path=[REPO])  # in this process: imports paid once
+    assert proc.returncode == 0, describe(["python", "<documented block>"], proc) + "\n" + code
     assert f"CLAIMS CHECKED {claims}" in proc.stdout, proc.stdout

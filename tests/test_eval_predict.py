@@ -13,30 +13,20 @@ import pytest
 import torch
 from PIL import Image
 
-from conftest import haar_rotations
+from conftest import haar_rotations, read_metrics, run_module
 from image2sphere.inference import Predictor
 from image2sphere.metrics import HDR_COVERAGE_KEYS
 from image2sphere.training.checkpoint import CheckpointError, build_module, load_checkpoint
-from test_train_entry import ENV, REPO, read_metrics, run_train
 
 
-@pytest.fixture(scope="module")
-def trained(tmp_path_factory) -> tuple[Path, Path, Path]:
-    """(checkpoint, its run directory, the data directory): one epoch of the tiny default run."""
-    root = tmp_path_factory.mktemp("tiny")
-    run = root / "run"
-    plots = ["callbacks.so3_plot.every_n_epochs=1", "callbacks.so3_plot.n_images=2", "callbacks.so3_plot.level=2"]
-    args = ["trainer.max_epochs=1", "logger=tensorboard", *plots, f"hydra.run.dir={run}"]
-    run_train(args, root / "data", root / "logs")
-    return run / "checkpoints" / "last.ckpt", run, root / "data"
+@pytest.fixture
+def trained(tiny_run) -> tuple[Path, Path, Path]:
+    """(checkpoint, its run directory, the data directory) of the session's tiny run (conftest.tiny_run)."""
+    return tiny_run / "checkpoints" / "last.ckpt", tiny_run, tiny_run.parent / "data"
 
 
 def _run(module: str, args: list[str], check: bool = True) -> subprocess.CompletedProcess:
-    proc = subprocess.run([sys.executable, "-m", module, *args], cwd=REPO, env=ENV, capture_output=True, text=True,
-                          timeout=900)  # fmt: skip
-    if check and proc.returncode != 0:
-        raise AssertionError(f"{module} {args} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}")
-    return proc
+    return run_module([sys.executable, "-m", module, *args], check=check)
 
 
 def test_training_plots_fixed_validation_images_into_the_run_and_the_logger(trained):

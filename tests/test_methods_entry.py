@@ -21,12 +21,11 @@ import pytest
 import torch
 from PIL import Image
 
-from conftest import haar_rotations
+from conftest import ENV as TRAIN_ENV
+from conftest import REPO, SMOKE, TINY, haar_rotations, run_module
 from image2sphere.distributions.base import PointEstimate, PoseDistribution
 from image2sphere.inference import Predictor
 from image2sphere.metrics import HDR_COVERAGE_KEYS
-from test_train_entry import ENV as TRAIN_ENV
-from test_train_entry import REPO, SMOKE, TINY, published_fixtures  # noqa: F401  (a fixture used below)
 
 # model config -> (has a density, has a closed-form normaliser, i.e. reports log_likelihood_exact)
 FAMILIES = {
@@ -69,12 +68,7 @@ def test_every_model_config_is_covered_here():
 
 
 def _run(args: list[str], timeout: int = 900) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-m", *args]
-    proc = subprocess.run(cmd, cwd=REPO, env=ENV, capture_output=True, text=True, timeout=timeout)
-    assert proc.returncode == 0, (
-        f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
-    )
-    return proc
+    return run_module([sys.executable, "-m", *args], env=ENV, timeout=timeout)
 
 
 def _sweep_jobs(sweep: Path) -> dict[str, Path]:
@@ -170,13 +164,13 @@ def _run_methods(dataset: str, data_dir: Path, tmp_path: Path) -> None:
         check_printed_table(model, tables[str(job.resolve())])
 
 
-def test_every_method_runs_on_symsol1_fixtures(tmp_path, published_fixtures):  # noqa: F811
+def test_every_method_runs_on_symsol1_fixtures(tmp_path, published_fixtures):
     _run_methods("symsol1", published_fixtures, tmp_path)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("dataset", ["symsol2", "modelnet10", "pascal3d"])
-def test_every_method_runs_on_published_layout_fixtures(tmp_path, published_fixtures, dataset):  # noqa: F811
+def test_every_method_runs_on_published_layout_fixtures(tmp_path, published_fixtures, dataset):
     _run_methods(dataset, published_fixtures, tmp_path)
 
 

@@ -29,22 +29,10 @@ def test_notebooks_are_committed_without_outputs(path):
             assert cell.execution_count is None, f"{path.name}: cell {i} has an execution count"
 
 
-@pytest.fixture(scope="module")
-def tiny_checkpoint(tmp_path_factory) -> Path:
-    from test_train_entry import run_train
-
-    root = tmp_path_factory.mktemp("notebooks")
-    args = [
-        "trainer.max_epochs=1",
-        "trainer.limit_train_batches=2",
-        "trainer.limit_val_batches=1",
-        "trainer.limit_test_batches=1",
-        "logger=none",
-    ]
-    run_train(args, root / "data", root / "logs")
-    (checkpoint,) = (root / "logs" / "train" / "runs").glob("*/checkpoints/last.ckpt")
-    assert (checkpoint.parents[1] / "metrics.json").is_file()
-    return checkpoint
+@pytest.fixture
+def tiny_checkpoint(tiny_run) -> Path:
+    """The checkpoint of the session's tiny run (conftest.tiny_run)."""
+    return tiny_run / "checkpoints" / "last.ckpt"
 
 
 @pytest.mark.slow

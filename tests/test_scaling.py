@@ -22,8 +22,8 @@ import pytest
 import torch
 import yaml
 
+from conftest import ENV, REPO, read_metrics, run_module, run_train, train_command
 from image2sphere.training.pipeline import is_secondary_rank, is_slurm_requeue, requeue_checkpoint, sqlite_storage
-from test_train_entry import ENV, REPO, read_metrics, run_train, train_command
 
 TEST_PER_SHAPE = 7  # 2 shapes: 14 test images; 2 ranks x batch 4 = 8 does not divide 14
 DDP = ["trainer=ddp", "trainer.devices=2", f"dataset.render.test={TEST_PER_SHAPE}", "dataset.batch_size=4"]
@@ -38,10 +38,7 @@ def data_dir(tmp_path_factory) -> Path:
 
 
 def run_eval(args: list[str], log_dir: Path) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-m", "src.eval", f"paths.log_dir={log_dir}", "logger=none", "plots=0", *args]
-    proc = subprocess.run(cmd, cwd=REPO, env=ENV, capture_output=True, text=True, timeout=900)
-    assert proc.returncode == 0, f"{' '.join(cmd)} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
-    return proc
+    return run_module([sys.executable, "-m", "src.eval", f"paths.log_dir={log_dir}", "logger=none", "plots=0", *args])
 
 
 def assert_same_metrics(a: dict, b: dict) -> None:
@@ -275,9 +272,9 @@ def test_existing_run_directory_is_refused_for_a_new_run_and_joined_by_a_rank(tm
     (existing / ".hydra" / "config.yaml").write_text("earlier: run\n")
     cmd = [sys.executable, "-m", "src.train", "logger=none", f"hydra.run.dir={existing}", "train=false", "test=false"]
     env = {k: v for k, v in ENV.items() if k not in RANK_VARIABLES}
-    refused = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    refused = run_module(cmd, check=False, env=env)
     assert refused.returncode == 1 and "already holds files" in refused.stderr
-    rank1 = subprocess.run(cmd, cwd=REPO, env={**env, "LOCAL_RANK": "1"}, capture_output=True, text=True, timeout=300)
+    rank1 = run_module(cmd, check=False, env={**env, "LOCAL_RANK": "1"})
     assert "already holds files" not in rank1.stderr
     assert (existing / ".hydra" / "config.yaml").read_text() == "earlier: run\n"  # rank 0's config kept
     assert sorted(p.name for p in (existing / ".hydra").iterdir()) == ["config.yaml"]
@@ -312,9 +309,7 @@ def test_requeued_slurm_job_continues_from_last_ckpt_in_its_own_directory(tmp_pa
 
     def train(args: list[str], env: dict) -> subprocess.CompletedProcess:
         cmd = train_command(["logger=none", *args], data_dir, logs)
-        proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
-        assert proc.returncode == 0, proc.stderr[-4000:]
-        return proc
+        return run_module(cmd, env=env)
 
     train(["trainer.max_epochs=1", "test=false"], env)  # the first start: stopped after epoch 0
     run = logs / "train" / "runs" / "slurm_5151"
@@ -363,7 +358,7 @@ def test_slurm_launcher_renders_the_sbatch_parameters_it_submits(tmp_path):
         "seed=0,1,2,3",
     ]  # fmt: skip
     env = {**ENV, "PATH": f"{bin_dir}:{ENV['PATH']}"}
-    proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    proc = run_module(cmd, check=False, env=env)
     assert proc.returncode != 0  # our sbatch refused to queue it
     script = (tmp_path / "job.sh").read_text()
     for line in [

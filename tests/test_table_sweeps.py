@@ -5,8 +5,6 @@ that every table file launches on the fixtures of the published datasets and can
 from __future__ import annotations
 
 import json
-import os
-import subprocess
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -16,10 +14,10 @@ from hydra import compose, initialize_config_dir
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import OmegaConf
 
+from conftest import REPO, run_module
 from hydra_plugins.image2sphere_sweeper.table_sweeper import expand_grids
 from image2sphere.reporting import Run, build_table, load_layouts
 from test_methods_entry import METHOD_SMOKE
-from test_train_entry import ENV, REPO, published_fixtures  # noqa: F401  (a fixture used below)
 
 LAYOUTS = load_layouts()
 TABLES = sorted(p.stem for p in (REPO / "conf" / "table").glob("*.yaml"))
@@ -106,7 +104,7 @@ def test_table5_can_be_printed_from_table1s_runs():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("table", TABLES)
-def test_every_table_launches_on_the_fixtures_and_is_tabulated(table, published_fixtures, tmp_path):  # noqa: F811
+def test_every_table_launches_on_the_fixtures_and_is_tabulated(table, published_fixtures, tmp_path):
     """The first and the last job of each table (``hydra.sweeper.jobs``), one batch each, on the
     fixtures of the published datasets; their directories keep the job numbers of the full table;
     src.tables then fills exactly those cells."""
@@ -114,18 +112,14 @@ def test_every_table_launches_on_the_fixtures_and_is_tabulated(table, published_
     last = len(jobs) - 1
     cmd = [sys.executable, "-m", "src.train", f"table={table}", f"hydra.sweeper.jobs=[0,{last}]",
            f"paths.data_dir={published_fixtures}", f"paths.log_dir={tmp_path}", *SMOKE]  # fmt: skip
-    env = {**ENV, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", ENV["OMP_NUM_THREADS"])}
-    proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=900)
-    assert proc.returncode == 0, proc.stderr[-4000:]
+    run_module(cmd)
     (sweep,) = (tmp_path / table / "multiruns").iterdir()
     assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == sorted({"0", str(last)})
     for job in (0, last):
         overrides = (sweep / str(job) / ".hydra" / "overrides.yaml").read_text()
         assert all(o in overrides for o in jobs[job]), (jobs[job], overrides)
         assert json.loads((sweep / str(job) / "metrics.json").read_text())["n_images"] > 0
-    proc = subprocess.run([sys.executable, "-m", "src.tables", str(sweep)], cwd=REPO, env=env, capture_output=True,
-                          text=True, timeout=300)  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    proc = run_module([sys.executable, "-m", "src.tables", str(sweep)])
     assert "not in this table" not in proc.stdout and "not finished" not in proc.stdout
     assert proc.stdout.count("ours (1 run)") == 2  # the rows of the two jobs
     assert (sweep / "tables" / f"{table}.md").is_file() and (sweep / "tables" / f"{table}.tex").is_file()
@@ -133,7 +127,7 @@ def test_every_table_launches_on_the_fixtures_and_is_tabulated(table, published_
 
 def test_job_numbers_that_do_not_exist_are_refused_before_anything_runs(tmp_path):
     cmd = [sys.executable, "-m", "src.train", "table=table6", "hydra.sweeper.jobs=[1,9]", f"paths.log_dir={tmp_path}"]
-    proc = subprocess.run(cmd, cwd=REPO, env=ENV, capture_output=True, text=True, timeout=300)
+    proc = run_module(cmd, check=False)
     assert proc.returncode != 0
     assert "hydra.sweeper.jobs: job numbers [9] do not exist; this sweep has jobs 0..3" in proc.stderr
     assert not list(tmp_path.rglob("metrics.json")) and not list(tmp_path.rglob("*.ckpt"))

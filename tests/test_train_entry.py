@@ -6,9 +6,7 @@ small I2S on it; everything is written under pytest's tmp directories.
 
 from __future__ import annotations
 
-import json
 import math
-import os
 import subprocess
 import sys
 import time
@@ -17,57 +15,12 @@ from pathlib import Path
 import pytest
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
-
-# Small and fast: 32 px images, lmax 2, coarse grids, a narrow network.
-TINY = [
-    "dataset.render.train=10",
-    "dataset.render.test=3",
-    "dataset.val_per_shape=2",
-    "dataset.image_size=32",
-    "dataset.batch_size=6",
-    "lmax=2",
-    "train_grid_level=2",
-    "eval_grid_level=3",
-    "model.spread_grid_level=2",
-    "model.net.sphere_channels=16",
-    "model.net.so3_channels=4",
-    "model.net.activation_resolution=4",
-    "trainer.accelerator=cpu",
-    "trainer.num_sanity_val_steps=0",
-    "callbacks.progress_bar.refresh_rate=0",
-]
+from conftest import ENV, REPO, SMOKE, read_metrics, run_module, run_train, train_command
 
 
 @pytest.fixture(scope="module")
 def data_dir(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("data")
-
-
-ENV = {**os.environ, "WANDB_SILENT": "true", "OMP_NUM_THREADS": "2"}
-
-
-def train_command(args: list[str], data_dir: Path, log_dir: Path) -> list[str]:
-    flags = [a for a in args if a.startswith("-")]
-    overrides = [a for a in args if not a.startswith("-")]
-    keys = {a.split("=")[0] for a in overrides}
-    base = [a for a in TINY if a.split("=")[0] not in keys]  # args win over the tiny defaults
-    paths = [f"paths.data_dir={data_dir}", f"paths.log_dir={log_dir}"]
-    return [sys.executable, "-m", "src.train", *flags, *base, *paths, *overrides]
-
-
-def run_train(args: list[str], data_dir: Path, log_dir: Path, check: bool = True) -> subprocess.CompletedProcess:
-    cmd = train_command(args, data_dir, log_dir)
-    proc = subprocess.run(cmd, cwd=REPO, env=ENV, capture_output=True, text=True, timeout=900)
-    if check and proc.returncode != 0:
-        raise AssertionError(
-            f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
-        )
-    return proc
-
-
-def read_metrics(run_dir: Path) -> dict:
-    return json.loads((run_dir / "metrics.json").read_text())
 
 
 def test_fast_dev_run_through_entry_point(tmp_path, data_dir):
@@ -189,32 +142,12 @@ def test_run_killed_mid_epoch_resumes_from_its_last_epoch(tmp_path, data_dir):
 # ------------------------------------------------------------------ the paper's experiments on fixtures
 
 EXPERIMENTS = sorted(p.stem for p in (REPO / "conf" / "experiment").glob("*.yaml"))
-# smaller batches and evaluation grids than the paper's, so that a smoke run takes seconds
-SMOKE = [
-    "trainer.fast_dev_run=true",
-    "dataset.batch_size=4",
-    "dataset.num_workers=0",
-    "dataset.pin_memory=false",
-    "eval_grid_level=3",
-    "model.spread_grid_level=2",
-    "logger=none",
-]
-
-
-@pytest.fixture(scope="module")
-def published_fixtures(tmp_path_factory) -> Path:
-    from image2sphere.data.fixtures.__main__ import main
-
-    root = tmp_path_factory.mktemp("published") / "data"
-    assert main([str(root)]) == 0
-    return root
 
 
 def _run_experiment(experiment: str, data_dir: Path, log_dir: Path) -> dict:
     cmd = [sys.executable, "-m", "src.train", f"experiment={experiment}", *SMOKE,
            f"paths.data_dir={data_dir}", f"paths.log_dir={log_dir}"]  # fmt: skip
-    proc = subprocess.run(cmd, cwd=REPO, env=ENV, capture_output=True, text=True, timeout=900)
-    assert proc.returncode == 0, f"{' '.join(cmd)} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
+    run_module(cmd)
     (run_dir,) = (log_dir / experiment / "runs").iterdir()
     return read_metrics(run_dir)
 

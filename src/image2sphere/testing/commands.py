@@ -1,0 +1,176 @@
+"""Run a ``python -m <module> ...`` or ``python <script> ...`` command line in this process.
+
+A test of a command line (``python -m src.train trainer.fast_dev_run=true``) spends most of its time
+starting a Python process and importing torch, Lightning, Hydra and e3nn. :func:`run_command` runs the
+same module as ``__main__`` with the same arguments, working directory and environment inside the
+calling process and returns what :func:`subprocess.run` would (exit status, stdout, stderr), so that
+the imports are paid once per test session. What differs from a real process is undone afterwards:
+``sys.argv``, ``sys.path``, the environment, the working directory, the root logger's handlers, the
+warning filters and Hydra's global state.
+
+What cannot be run in-process is run as a subprocess (:func:`needs_own_process`): a command that starts
+more processes from its own command line (Lightning's DDP on several devices re-executes
+``sys.argv``; Hydra's joblib launcher). A command a test means to signal or kill is started with
+:mod:`subprocess` by the test itself.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import logging
+import os
+import runpy
+import subprocess
+import sys
+import warnings
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+__all__ = ["needs_own_process", "run_command"]
+
+# overrides after which a run starts other processes from its own command line
+_OWN_PROCESS = ("trainer=ddp", "hydra/launcher=local_parallel")
+
+
+def needs_own_process(argv: Sequence[str]) -> bool:
+    """Whether ``argv`` (``[python, -m, module, *args]``) must run as a process of its own.
+
+    True for DDP on more than one device (Lightning re-executes the command line once per device)
+    and for Hydra's joblib launcher (its workers import the task function from ``__main__``).
+    """
+    args = list(argv[1:])
+    if any(a in _OWN_PROCESS for a in args):
+        return True
+    for arg in args:
+        key, _, value = arg.partition("=")
+        if key.lstrip("+") == "trainer.devices" and value not in ("1", "auto", "null", "[0]"):
+            return True
+        if key.lstrip("+") == "trainer.strategy" and value.startswith("ddp"):
+            return True
+    return False
+
+
+class _Tee(io.StringIO):
+    """A text stream that keeps what is written (``fileno`` is refused, as for any in-memory stream)."""
+
+
+def run_command(
+    argv: Sequence[str],
+    cwd: str | os.PathLike | None = None,
+    env: Mapping[str, str] | None = None,
+    timeout: float | None = None,
+    extra_path: Sequence[str | os.PathLike] = (),
+) -> subprocess.CompletedProcess:
+    """Run ``argv`` (``[sys.executable, "-m", module, *args]`` or ``[sys.executable, script, *args]``).
+
+    In this process unless :func:`needs_own_process` says otherwise, in which case it is
+    ``subprocess.run(argv, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)``.
+    ``extra_path`` is put in front of ``sys.path`` for the run (what ``PYTHONPATH`` does for a
+    subprocess: e.g. the repository root, so that ``-m src.train`` is found from another directory).
+    ``timeout`` applies to subprocesses only.
+    """
+    argv = [str(a) for a in argv]
+    if len(argv) < 2 or Path(argv[0]).name not in (Path(sys.executable).name, "python", "python3"):
+        raise ValueError(f"expected [python, -m, module, ...] or [python, script, ...], got {argv[:3]}")
+    if needs_own_process(argv):
+        return subprocess.run(argv, cwd=cwd, env=None if env is None else dict(env), capture_output=True,
+                              text=True, timeout=timeout)  # fmt: skip
+    if argv[1] == "-m":
+        if len(argv) < 3:
+            raise ValueError("python -m needs a module name")
+        target, rest, is_module = argv[2], argv[3:], True
+    else:
+        target, rest, is_module = argv[1], argv[2:], False
+    out, err = _Tee(), _Tee()
+    code = _run_here(target, rest, is_module, cwd, env, extra_path, out, err)
+    return subprocess.CompletedProcess(argv, code, out.getvalue(), err.getvalue())
+
+
+def _run_here(target, rest, is_module, cwd, env, extra_path, out, err) -> int:
+    from hydra.core.global_hydra import GlobalHydra
+
+    saved_argv, saved_path, saved_env, saved_cwd = sys.argv[:], sys.path[:], dict(os.environ), os.getcwd()
+    root = logging.getLogger()
+    saved_handlers, saved_level = root.handlers[:], root.level
+    saved_loggers = {name: (lg.handlers[:], lg.level, lg.propagate, lg.disabled) for name, lg in
+                     logging.Logger.manager.loggerDict.items() if isinstance(lg, logging.Logger)}  # fmt: skip
+    code = 0
+    try:
+        if env is not None:
+            os.environ.clear()
+            os.environ.update(env)
+        if cwd is not None:
+            os.chdir(cwd)
+        sys.path[:0] = [str(Path(p).resolve()) for p in extra_path]
+        if not is_module:
+            sys.path.insert(0, str(Path(target).resolve().parent))
+        sys.argv = [target, *rest]
+        GlobalHydra.instance().clear()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), warnings.catch_warnings():
+            warnings.resetwarnings()  # as a fresh interpreter: every warning shown once more, on stderr
+            warnings.simplefilter("default")
+            warnings.filterwarnings("ignore", category=DeprecationWarning)
+            warnings.showwarning = _print_warning
+            try:
+                if is_module:
+                    runpy.run_module(target, run_name="__main__", alter_sys=True)
+                else:
+                    runpy.run_path(target, run_name="__main__")
+            except SystemExit as stop:
+                code = _exit_status(stop.code, err)
+            except BaseException as error:  # an uncaught exception: what the interpreter would print
+                if isinstance(error, KeyboardInterrupt):
+                    raise
+                import traceback
+
+                traceback.print_exc(file=err)
+                code = 1
+            finally:
+                for stream in (sys.stdout, sys.stderr):
+                    with contextlib.suppress(Exception):
+                        stream.flush()
+    finally:
+        GlobalHydra.instance().clear()
+        for handler in root.handlers[:]:
+            if handler not in saved_handlers:
+                root.removeHandler(handler)
+                with contextlib.suppress(Exception):
+                    handler.close()
+        for handler in saved_handlers:
+            if handler not in root.handlers:
+                root.addHandler(handler)
+        root.setLevel(saved_level)
+        for name, lg in list(logging.Logger.manager.loggerDict.items()):
+            if not isinstance(lg, logging.Logger):
+                continue
+            handlers, level, propagate, disabled = saved_loggers.get(name, ([], logging.NOTSET, True, False))
+            for handler in lg.handlers[:]:
+                if handler not in handlers:
+                    lg.removeHandler(handler)
+                    with contextlib.suppress(Exception):
+                        handler.close()
+            lg.setLevel(level)
+            lg.propagate = propagate
+            lg.disabled = disabled
+        os.chdir(saved_cwd)
+        os.environ.clear()
+        os.environ.update(saved_env)
+        sys.path[:] = saved_path
+        sys.argv = saved_argv
+    return code
+
+
+def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Warnings go to the run's stderr, as a process of its own would print them."""
+    sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
+
+
+def _exit_status(code, err: io.StringIO) -> int:
+    """The exit status ``sys.exit(code)`` gives a process (a message goes to stderr, status 1)."""
+    if code is None:
+        return 0
+    if isinstance(code, int):
+        return code
+    print(code, file=err)
+    return 1

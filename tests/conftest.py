@@ -2,8 +2,9 @@
 
 * Runs of the entry points (``python -m src.train ...``): :func:`run_train` with the tiny settings
   ``TINY`` (32 px images, lmax 2, coarse grids, a narrow network) runs in this process
-  (:func:`image2sphere.testing.run_command`), so the suite pays the imports once; a test whose subject
-  is the process itself (a signal, a kill, DDP's second process) asks for ``own_process=True``.
+  (:func:`image2sphere.testing.run_command`), so the suite pays the imports once (DDP and the joblib
+  launcher still start processes); a test whose subject is the process itself (a signal, a kill) starts
+  :func:`train_command` with :mod:`subprocess`.
 * Session fixtures, built once and shared read-only: ``published_fixtures`` (tiny copies of every
   dataset in its published layout) and ``tiny_run`` (one epoch of the tiny default run, with its
   checkpoint, plots and TensorBoard events).
@@ -74,16 +75,12 @@ def train_command(args: list[str], data_dir: Path, log_dir: Path) -> list[str]:
     return [sys.executable, "-m", "src.train", *flags, *base, *paths, *overrides]
 
 
-def run_module(argv: list[str], check: bool = True, own_process: bool = False, env: dict | None = None,
-               cwd: Path = REPO, timeout: float = 900) -> subprocess.CompletedProcess:  # fmt: skip
-    """``argv`` (``[python, -m, module, ...]``) from the repository root: in this process, or as a process of
-    its own when ``own_process`` (or when the command starts processes itself, e.g. DDP). ``check``: a
+def run_module(argv: list[str], check: bool = True, env: dict | None = None, cwd: Path = REPO,
+               timeout: float = 900) -> subprocess.CompletedProcess:  # fmt: skip
+    """``argv`` (``[python, -m, module, ...]``) from the repository root with :func:`run_command`: in this
+    process, or as a process of its own when the command starts processes itself (DDP). ``check``: a
     non-zero exit fails the test with the command's output."""
-    env = ENV if env is None else env
-    if own_process:
-        proc = subprocess.run(argv, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
-    else:
-        proc = run_command(argv, cwd=cwd, env=env, timeout=timeout, extra_path=[REPO])
+    proc = run_command(argv, cwd=cwd, env=ENV if env is None else env, timeout=timeout, extra_path=[REPO])
     if check and proc.returncode != 0:
         raise AssertionError(
             f"{' '.join(map(str, argv))} failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-5000:]}"
@@ -91,10 +88,9 @@ def run_module(argv: list[str], check: bool = True, own_process: bool = False, e
     return proc
 
 
-def run_train(args: list[str], data_dir: Path, log_dir: Path, check: bool = True,
-              own_process: bool = False) -> subprocess.CompletedProcess:  # fmt: skip
+def run_train(args: list[str], data_dir: Path, log_dir: Path, check: bool = True) -> subprocess.CompletedProcess:
     """``python -m src.train`` with the tiny settings (see :func:`train_command` and :func:`run_module`)."""
-    return run_module(train_command(args, data_dir, log_dir), check=check, own_process=own_process)
+    return run_module(train_command(args, data_dir, log_dir), check=check)
 
 
 def read_metrics(run_dir: Path) -> dict:

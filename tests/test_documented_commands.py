@@ -546,12 +546,12 @@ def code_path(text: str) -> tuple | None:
     words = shlex.split(text)
     if words[:3] != ["python", "-m", "src.train"]:
         return None
+    if needs_own_process(["python", *words[1:]]):  # DDP and the joblib launcher: one runs here, test_scaling
+        return ("own process",)  # runs each of them (a sweep of DDP jobs, the local launcher) on its own
     args = words[3:]
     modes = tuple(sorted({override_key(a) for a in args if override_key(a) in MODE_KEYS} |
                          {a for a in args if a.startswith("-")}))  # fmt: skip
     launch = tuple(sorted(a for a in args if override_key(a) in LAUNCH_GROUPS))
-    if needs_own_process(["python", *words[1:]]):  # DDP and the joblib launcher: one runs here, test_scaling
-        return ("own process",)  # runs each of them (a sweep of DDP jobs, the local launcher) on its own
     weights = any(PRETRAINED.match(a) for a in args)
     return (bool(args), modes, optuna_search(args), launch, weights)
 
@@ -561,7 +561,7 @@ def test_launch_groups_are_chosen_only_on_the_command_line_or_by_a_mode():
     choose a launch group's option, never an experiment, model or dataset file."""
     choosers = set()
     for path in (REPO / "conf").rglob("*.yaml"):
-        defaults = (yaml.safe_load(path.read_text()) or {}).get("defaults", []) if path.read_text() else []
+        defaults = (yaml.safe_load(path.read_text()) or {}).get("defaults", [])
         for entry in defaults if isinstance(defaults, list) else []:
             if isinstance(entry, dict) and any(str(k).replace("override ", "").strip("/") in LAUNCH_GROUPS
                                                for k in entry):  # fmt: skip
@@ -591,8 +591,8 @@ def check_composed_train(argv: list[str], args: list[str]) -> None:
     additions = [a for a in argv[3 + len(args) :] if "=" in a and not override_key(a).startswith("hydra.sweeper.")]
     sweep = sweep_values(args)
     for job in job_overrides(args):
-        cfg = compose_train([*job, *[a for a in additions if override_key(a) not in {override_key(j) for j in job}]],
-                            hydra_config=True)  # fmt: skip
+        keys = {override_key(j) for j in job}
+        cfg = compose_train([*job, *[a for a in additions if override_key(a) not in keys]], hydra_config=True)
         choices = OmegaConf.to_container(cfg.hydra.runtime.choices)
         HydraConfig.instance().set_config(cfg)
         try:

@@ -51,10 +51,6 @@ def needs_own_process(argv: Sequence[str]) -> bool:
     return False
 
 
-class _Tee(io.StringIO):
-    """A text stream that keeps what is written (``fileno`` is refused, as for any in-memory stream)."""
-
-
 def run_command(
     argv: Sequence[str],
     cwd: str | os.PathLike | None = None,
@@ -82,7 +78,7 @@ def run_command(
         target, rest, is_module = argv[2], argv[3:], True
     else:
         target, rest, is_module = argv[1], argv[2:], False
-    out, err = _Tee(), _Tee()
+    out, err = io.StringIO(), io.StringIO()
     code = _run_here(target, rest, is_module, cwd, env, extra_path, out, err)
     return subprocess.CompletedProcess(argv, code, out.getvalue(), err.getvalue())
 
@@ -91,10 +87,7 @@ def _run_here(target, rest, is_module, cwd, env, extra_path, out, err) -> int:
     from hydra.core.global_hydra import GlobalHydra
 
     saved_argv, saved_path, saved_env, saved_cwd = sys.argv[:], sys.path[:], dict(os.environ), os.getcwd()
-    root = logging.getLogger()
-    saved_handlers, saved_level = root.handlers[:], root.level
-    saved_loggers = {name: (lg.handlers[:], lg.level, lg.propagate, lg.disabled) for name, lg in
-                     logging.Logger.manager.loggerDict.items() if isinstance(lg, logging.Logger)}  # fmt: skip
+    saved_loggers = {lg: _logger_state(lg) for lg in _loggers()}
     code = 0
     try:
         if env is not None:
@@ -119,9 +112,7 @@ def _run_here(target, rest, is_module, cwd, env, extra_path, out, err) -> int:
                     runpy.run_path(target, run_name="__main__")
             except SystemExit as stop:
                 code = _exit_status(stop.code, err)
-            except BaseException as error:  # an uncaught exception: what the interpreter would print
-                if isinstance(error, KeyboardInterrupt):
-                    raise
+            except Exception:  # an uncaught exception: what the interpreter would print
                 import traceback
 
                 traceback.print_exc(file=err)
@@ -132,33 +123,39 @@ def _run_here(target, rest, is_module, cwd, env, extra_path, out, err) -> int:
                         stream.flush()
     finally:
         GlobalHydra.instance().clear()
-        for handler in root.handlers[:]:
-            if handler not in saved_handlers:
-                root.removeHandler(handler)
-                with contextlib.suppress(Exception):
-                    handler.close()
-        for handler in saved_handlers:
-            if handler not in root.handlers:
-                root.addHandler(handler)
-        root.setLevel(saved_level)
-        for name, lg in list(logging.Logger.manager.loggerDict.items()):
-            if not isinstance(lg, logging.Logger):
-                continue
-            handlers, level, propagate, disabled = saved_loggers.get(name, ([], logging.NOTSET, True, False))
-            for handler in lg.handlers[:]:
-                if handler not in handlers:
-                    lg.removeHandler(handler)
-                    with contextlib.suppress(Exception):
-                        handler.close()
-            lg.setLevel(level)
-            lg.propagate = propagate
-            lg.disabled = disabled
+        for lg in _loggers():  # a logger the run created goes back to a new logger's state
+            _restore_logger(lg, *saved_loggers.get(lg, ([], logging.NOTSET, True, False)))
         os.chdir(saved_cwd)
         os.environ.clear()
         os.environ.update(saved_env)
         sys.path[:] = saved_path
         sys.argv = saved_argv
     return code
+
+
+def _loggers() -> list[logging.Logger]:
+    """The root logger and every named one (placeholders left out)."""
+    named = [lg for lg in logging.Logger.manager.loggerDict.values() if isinstance(lg, logging.Logger)]
+    return [logging.getLogger(), *named]
+
+
+def _logger_state(lg: logging.Logger) -> tuple:
+    return lg.handlers[:], lg.level, lg.propagate, lg.disabled
+
+
+def _restore_logger(lg: logging.Logger, handlers: list, level: int, propagate: bool, disabled: bool) -> None:
+    """``lg`` as it was: the handlers a run added removed and closed (Hydra's console and file logs),
+    those it removed put back, its level, propagation and disabled flag restored."""
+    for handler in lg.handlers[:]:
+        if handler not in handlers:
+            lg.removeHandler(handler)
+            with contextlib.suppress(Exception):
+                handler.close()
+    for handler in handlers:
+        if handler not in lg.handlers:
+            lg.addHandler(handler)
+    lg.setLevel(level)
+    lg.propagate, lg.disabled = propagate, disabled
 
 
 def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:

@@ -2,20 +2,42 @@
 
 from __future__ import annotations
 
+import copy
+
 import torch
 from e3nn.nn import SO3Activation
 from torch import nn
 
+from image2sphere.precision import constant_cache
 from image2sphere.so3.wigner import check_lmax
 
 __all__ = ["SO3ReLU"]
+
+
+@constant_cache(maxsize=8)
+def _relu_on_grid(lmax: int, resolution: int, dtype: torch.dtype) -> SO3Activation:
+    """e3nn's ReLU on its SO(3) grid, built once per process and setting: its Wigner matrices (about
+    4 s of CPU per layer at resolution 8, a ``matrix_exp`` per grid angle) are the same for every layer
+    and every network. ``dtype``: the default dtype the grid is built in (part of the cache key)."""
+    previous = torch.get_default_dtype()
+    torch.set_default_dtype(dtype)
+    try:
+        act = SO3Activation(lmax, lmax, torch.relu, resolution)
+    finally:
+        torch.set_default_dtype(previous)
+    for grid in (act.grid_in, act.grid_out):
+        for name, buf in list(grid.named_buffers(recurse=False, remove_duplicate=False)):
+            grid.register_buffer(name, buf, persistent=False)  # constants: kept out of checkpoints
+    return act
 
 
 class SO3ReLU(nn.Module):
     """ReLU of an SO(3) signal ``[..., n_so3_coeffs(lmax)]`` evaluated on e3nn's SO(3) quadrature grid.
 
     Equivariant up to the grid's sampling error (smaller for larger ``resolution``). The grid's
-    Wigner matrices are constants: they are kept out of checkpoints.
+    Wigner matrices are constants: they are kept out of checkpoints, and every layer of the same
+    ``lmax`` and ``resolution`` in a process starts from the same tensors (``.to()`` gives each
+    module its own copy, as for any buffer).
     """
 
     def __init__(self, lmax: int = 6, resolution: int = 8):
@@ -23,10 +45,9 @@ class SO3ReLU(nn.Module):
         self.lmax = check_lmax(lmax)
         if resolution < 1:
             raise ValueError(f"resolution must be >= 1, got {resolution!r}")
-        self.act = SO3Activation(lmax, lmax, torch.relu, resolution)
-        for grid in (self.act.grid_in, self.act.grid_out):
-            for name, buf in list(grid.named_buffers(recurse=False, remove_duplicate=False)):
-                grid.register_buffer(name, buf, persistent=False)
+        shared = _relu_on_grid(self.lmax, int(resolution), torch.get_default_dtype())
+        # a module of its own around the shared constant tensors (the memo maps each buffer to itself)
+        self.act = copy.deepcopy(shared, memo={id(buf): buf for buf in shared.buffers()})
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.act(x)

@@ -88,6 +88,7 @@ def _run_here(target, rest, is_module, cwd, env, extra_path, out, err) -> int:
 
     saved_argv, saved_path, saved_env, saved_cwd = sys.argv[:], sys.path[:], dict(os.environ), os.getcwd()
     saved_loggers = {lg: _logger_state(lg) for lg in _loggers()}
+    redirected = _redirect_console_handlers(out, err)
     code = 0
     try:
         if env is not None:
@@ -123,6 +124,8 @@ def _run_here(target, rest, is_module, cwd, env, extra_path, out, err) -> int:
                         stream.flush()
     finally:
         GlobalHydra.instance().clear()
+        for handler, stream in redirected:
+            handler.setStream(stream)
         for lg in _loggers():  # a logger the run created goes back to a new logger's state
             _restore_logger(lg, *saved_loggers.get(lg, ([], logging.NOTSET, True, False)))
         os.chdir(saved_cwd)
@@ -137,6 +140,20 @@ def _loggers() -> list[logging.Logger]:
     """The root logger and every named one (placeholders left out)."""
     named = [lg for lg in logging.Logger.manager.loggerDict.values() if isinstance(lg, logging.Logger)]
     return [logging.getLogger(), *named]
+
+
+def _redirect_console_handlers(out: io.StringIO, err: io.StringIO) -> list[tuple[logging.StreamHandler, object]]:
+    """Console handlers that loggers already hold (Lightning adds one to its logger at import when the root
+    logger has none) write to the run's ``out`` (those on standard output) or ``err`` (any other console
+    stream) until the run ends, as they would in a process of its own. Their earlier streams are returned.
+    File handlers and other ``StreamHandler`` subclasses (pytest's log capture) are left alone."""
+    stdout = {id(sys.stdout), id(sys.__stdout__)}
+    redirected = []
+    for lg in _loggers():
+        for handler in lg.handlers:
+            if type(handler) is logging.StreamHandler and handler.stream not in (out, err):
+                redirected.append((handler, handler.setStream(out if id(handler.stream) in stdout else err)))
+    return redirected
 
 
 def _logger_state(lg: logging.Logger) -> tuple:

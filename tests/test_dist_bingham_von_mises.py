@@ -369,3 +369,11 @@ def test_von_mises_bad_input():
         VonMisesEuler(torch.ones(1, 1, 2, 2), torch.ones(1, 1, 2))
     with pytest.raises(ValueError, match=r"\(2, 3, 3\)"):
         von_mises_nll(torch.ones(1, 10), torch.eye(3).expand(2, 3, 3))
+
+
+def test_von_mises_component_normalizers_are_the_product_of_three_circle_normalizers():
+    """Quick. ``component_log_normalizers``: per component, log of prod_i 2 pi I0(kappa_i) (mpmath's Bessel)."""
+    kappa = torch.tensor([[[0.3, 5.0, 40.0], [1e-3, 2.0, 700.0]]], dtype=D)  # [B=1, C=2, 3]
+    dist = VonMisesEuler(biternion(torch.zeros(1, 2, 3, dtype=D)), kappa)
+    ref = [sum(float(mpmath.log(2 * mpmath.pi * mpmath.besseli(0, k))) for k in row) for row in kappa[0].tolist()]
+    torch.testing.assert_close(dist.component_log_normalizers(), torch.tensor([ref], dtype=D), rtol=1e-12, atol=0)

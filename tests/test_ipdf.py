@@ -196,3 +196,13 @@ def test_level4_grid_is_swept_in_chunks(monkeypatch):
     torch.testing.assert_close(lse, torch.logsumexp(dense, dim=1))
     torch.testing.assert_close(top, dense.max(dim=1).values)
     assert torch.equal(arg, dense.argmax(dim=1))
+
+
+def test_distribution_of_images_is_the_output_distribution_of_their_features():
+    """Quick. ``IPDF.distribution(images)`` is ``output_distribution(net(images))``: the same scores."""
+    model = tiny_ipdf().eval()
+    images, R = torch.randn(2, 3, 16, 16), random_rotations(4)
+    with torch.no_grad():
+        direct = model.distribution(images).unnormalized_log_density(R)
+        via = model.output_distribution(model(images)).unnormalized_log_density(R)
+    torch.testing.assert_close(direct, via, rtol=0, atol=0)

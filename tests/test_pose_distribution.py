@@ -53,6 +53,10 @@ def test_generic_points_above_modes_and_threshold_match(fourier):
         assert torch.equal(i, i_fast) and len(i) > 0
         torch.testing.assert_close(p, p_fast, rtol=0, atol=1e-12)
     torch.testing.assert_close(GENERIC.max_prob(fourier, 3), fourier.max_prob(3))
+    dense = torch.softmax(fourier.grid_logits(3), dim=-1).amax(-1)  # the largest grid probability, densely
+    threshold = torch.clamp(dense * (1 - 1e-6), max=10.0 / math.prod(so3_grid_size(3)))
+    torch.testing.assert_close(GENERIC.default_threshold(fourier, 3), threshold, rtol=1e-9, atol=0)
+    torch.testing.assert_close(fourier.default_threshold(3), threshold, rtol=1e-9, atol=0)
     modes = GENERIC.modes(fourier, 3, k=3)
     for (R, mass), (R_fast, mass_fast) in zip(modes, fourier.modes(3, k=3), strict=True):
         torch.testing.assert_close(R, R_fast, rtol=0, atol=1e-9)

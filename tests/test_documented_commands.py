@@ -40,9 +40,10 @@ changed or removed; the only additions (never for a key the command sets itself)
   inside the suite: ``.ci/run`` must end with exactly that command;
 * external tools (``SKIPPED``) are listed with the reason they are not run.
 
-Marked slow (run by the full suite only): the benchmarks, training sweeps of more than four jobs, and
-commands that the README does not show (those of docs/ and config comments: variants of README
-commands that the quick run covers).
+Marked slow (run by the full suite only): the benchmarks, training sweeps of more than four jobs,
+commands that start processes of their own (DDP, the joblib launcher), and commands that the README
+does not show (those of docs/ and config comments: variants of README commands that the quick run
+covers).
 """
 
 from __future__ import annotations
@@ -1016,6 +1017,20 @@ def check_pytest(command: str) -> None:
     assert lines[-1] == command, f".ci/run ends with {lines[-1]!r}, not the README's test command {command!r}"
 
 
+def check_pytest_tier(args: list[str]) -> None:
+    """``python -m pytest -m EXPR``: the expression parses and names only markers registered in pyproject.toml
+    (an unknown one would select every test, or none, without a word)."""
+    import tomllib
+    from _pytest.mark.expression import Expression
+
+    assert len(args) == 2 and args[0] == "-m", f"a documented tier must be 'python -m pytest -m EXPR', got {args}"
+    registered = {m.split(":")[0].strip() for m in tomllib.loads((REPO / "pyproject.toml").read_text())["tool"][
+        "pytest"]["ini_options"]["markers"]}  # fmt: skip
+    named = set(re.findall(r"[A-Za-z_][A-Za-z0-9_]*", args[1])) - {"and", "or", "not"}
+    Expression.compile(args[1])
+    assert named and named <= registered, f"{args[1]!r} names {named - registered}, not markers of pyproject.toml"
+
+
 def render_documented_sets(args: list[str], ws: Workspace) -> None:
     """A documented training run on a set that a documented render command writes (``dataset.root=data/x``):
     that render command runs first, as the documents say (it does nothing when the set is already there)."""
@@ -1032,14 +1047,16 @@ def render_documented_sets(args: list[str], ws: Workspace) -> None:
 
 def _param(command: Command):
     """A parametrized case. Slow: the benchmarks, training sweeps of more than four jobs (a table runs
-    two unless it names its jobs), and commands that the README does not show (docs/ and config
-    comments: variants of the README's, which the quick run covers)."""
+    two unless it names its jobs), commands that start processes of their own (DDP), and commands that
+    the README does not show (docs/ and config comments: variants of the README's, which the quick run
+    covers)."""
     words = shlex.split(command.text)
     if not runs_for_real(command):  # composed and checked only: quick
         return pytest.param(command, id=command.text)
     slow = words[:2] in (["python", "benchmarks/grid_eval.py"], ["python", "benchmarks/table_cost.py"],
                          ["python", "benchmarks/data.py"], ["python", "benchmarks/projection_noise.py"])  # fmt: skip
     slow = slow or not any(w.startswith("README.md:") for w in command.where) and _first_words(command.text) == "python"
+    slow = slow or needs_own_process(words)  # DDP and the joblib launcher: processes of their own
     if words[:3] == ["python", "-m", "src.train"] and not any(PRETRAINED.match(w) for w in words):
         if table_of(words[3:]) is not None:  # its first and last job, unless it names its jobs
             slow = slow or len(_named_jobs(words[3:]) or [0, 1]) > 4
@@ -1059,6 +1076,8 @@ def test_documented_command(command: Command, fixtures_root, checkpoint_run, tmp
         return check_pip(text)
     if words == ["python", "-m", "pytest"]:
         return check_pytest(text)
+    if words[:3] == ["python", "-m", "pytest"]:  # a tier of the suite: not run inside the suite itself
+        return check_pytest_tier(words[3:])
     assert words[0] == "python", f"no runner for {text!r} (shown at {command.where})"
     fixtures_cmd = words[1:3] == ["-m", "image2sphere.data.fixtures"]
     ws = make_workspace(tmp_path / "repo", fixtures_root, checkpoint_run, with_root_link=not fixtures_cmd)

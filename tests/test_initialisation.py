@@ -190,7 +190,8 @@ SHORT_RUN = [
     "callbacks.progress_bar.refresh_rate=0",
     "logger=none",
 ]
-# test mean log likelihood (uniform: -2.29); measured here in the test process on torch's default threads
+# test mean log likelihood (uniform: -2.29); measured here with one thread (as a test process of -n 2 has):
+# -1.96 now, -2.30 before the ablation
 THRESHOLD = -2.13
 
 
@@ -210,5 +211,4 @@ def test_short_training_learns_with_the_mean_projection_and_not_with_the_earlier
                f"paths.log_dir={tmp_path / 'logs'}", f"hydra.run.dir={run}"]  # fmt: skip
         run_module(cmd, cwd=REPO)
         results[name] = read_metrics(run)["log_likelihood"]
-    print(results)
     assert results["new"] > THRESHOLD > results["old"], results

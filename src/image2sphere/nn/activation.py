@@ -16,9 +16,10 @@ __all__ = ["SO3ReLU"]
 
 @constant_cache(maxsize=8)
 def _relu_on_grid(lmax: int, resolution: int, dtype: torch.dtype) -> SO3Activation:
-    """e3nn's ReLU on its SO(3) grid, built once per process and setting: its Wigner matrices (about
-    4 s of CPU per layer at resolution 8, a ``matrix_exp`` per grid angle) are the same for every layer
-    and every network. ``dtype``: the default dtype the grid is built in (part of the cache key)."""
+    """e3nn's ReLU on its SO(3) grid, built once per process and setting: its Wigner matrices (two
+    grids per layer, each 2.5 s of one CPU thread at lmax 6 and resolution 8, 12 s at lmax 10) are the
+    same for every layer and every network. ``dtype``: the default dtype the grid is built in (part of
+    the cache key)."""
     previous = torch.get_default_dtype()
     torch.set_default_dtype(dtype)
     try:

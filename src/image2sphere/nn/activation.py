@@ -9,7 +9,7 @@ from e3nn.nn import SO3Activation
 from torch import nn
 
 from image2sphere.precision import constant_cache
-from image2sphere.so3.wigner import check_lmax
+from image2sphere.so3.wigner import check_lmax, default_dtype
 
 __all__ = ["SO3ReLU"]
 
@@ -20,12 +20,8 @@ def _relu_on_grid(lmax: int, resolution: int, dtype: torch.dtype) -> SO3Activati
     grids per layer, each 2.5 s of one CPU thread at lmax 6 and resolution 8, 12 s at lmax 10) are the
     same for every layer and every network. ``dtype``: the default dtype the grid is built in (part of
     the cache key)."""
-    previous = torch.get_default_dtype()
-    torch.set_default_dtype(dtype)
-    try:
+    with default_dtype(dtype):
         act = SO3Activation(lmax, lmax, torch.relu, resolution)
-    finally:
-        torch.set_default_dtype(previous)
     for grid in (act.grid_in, act.grid_out):
         for name, buf in list(grid.named_buffers(recurse=False, remove_duplicate=False)):
             grid.register_buffer(name, buf, persistent=False)  # constants: kept out of checkpoints

@@ -140,17 +140,15 @@ def test_relu_layers_share_the_grid_built_once_and_compute_as_e3nns_own(gen):
     freshly built e3nn ``SO3Activation`` does."""
     from e3nn.nn import SO3Activation
 
+    from image2sphere.so3.wigner import default_dtype
+
     a, b = SO3ReLU(2, 3), SO3ReLU(2, 3)
     assert a.act is not b.act and a.act.grid_in.D is b.act.grid_in.D
     x = torch.randn(4, n_so3_coeffs(2), generator=gen)
     torch.testing.assert_close(a(x), SO3Activation(2, 2, torch.relu, 3)(x), rtol=0, atol=0)
     b.to(torch.float64)
     assert b.act.grid_in.D.dtype == torch.float64 and a.act.grid_in.D.dtype == torch.float32
-    previous = torch.get_default_dtype()
-    torch.set_default_dtype(torch.float64)
-    try:
+    with default_dtype(torch.float64):
         c, reference = SO3ReLU(2, 3), SO3Activation(2, 2, torch.relu, 3)  # built in the default dtype
-    finally:
-        torch.set_default_dtype(previous)
     assert c.act.grid_in.D.dtype == torch.float64
     torch.testing.assert_close(c(x.double()), reference(x.double()), rtol=0, atol=0)

@@ -308,3 +308,35 @@ def test_checkpoint_from_before_projector_normalization_keeps_its_rule(tmp_path,
     assert build_module(loaded, old).net.projector.normalization == "sqrt"
     current = load_checkpoint(trained / "checkpoints" / "last.ckpt")
     assert build_module(current, "current").net.projector.normalization == "mean"
+
+
+def test_fourier_mlp_checkpoint_from_before_degree_power_predicts_as_it_was_trained(tmp_path):
+    """A Fourier MLP checkpoint written before ``model.net.degree_power`` existed held the coefficients as
+    the last layer gave them (power 0); rebuilt today it must predict exactly that, not today's default 1.
+    Quick: a 32 px network built from the real config, no training."""
+    from hydra import compose, initialize
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    from image2sphere.training.checkpoint import build_module, load_checkpoint
+
+    with initialize(version_base="1.3", config_path="../conf"):
+        cfg = compose(config_name="train", overrides=["model=fourier_mlp", "lmax=2", "dataset.image_size=32"])
+    model_cfg = OmegaConf.to_container(cfg.model, resolve=True)
+    assert model_cfg["net"]["degree_power"] == 1.0  # today's default
+    torch.manual_seed(0)
+    module = instantiate(OmegaConf.create(model_cfg))
+    with torch.no_grad():  # weights in the zero-initialised last layer, so that a scale would show
+        module.net.mlp[-1].weight.normal_()
+    del model_cfg["net"]["degree_power"]  # as a run of the earlier code stored it
+    path = tmp_path / "old.ckpt"
+    torch.save({"state_dict": module.state_dict(), "run_config": {"model": model_cfg}}, path)
+
+    loaded = load_checkpoint(path)
+    assert loaded["run_config"]["model"]["net"]["degree_power"] == 0.0
+    rebuilt = build_module(loaded, path).net
+    images = torch.randn(2, 3, 32, 32)
+    with torch.no_grad():
+        as_trained = rebuilt.mlp(rebuilt.pooled_features(images))  # the coefficients the last layer gives
+        assert torch.equal(rebuilt(images), as_trained)
+        assert not torch.allclose(module.net(images), as_trained)  # today's default would predict otherwise

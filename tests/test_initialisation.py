@@ -26,7 +26,7 @@ from image2sphere.nn.so3_conv import SO3Conv
 from image2sphere.so3 import random_rotations, so3_tube_grid
 from image2sphere.so3.grid import so3_healpix_nearest_index
 from image2sphere.so3.grid_eval import get_grid_evaluator
-from image2sphere.so3.wigner import flat_wigner, n_s2_coeffs, n_so3_coeffs
+from image2sphere.so3.wigner import flat_wigner, n_s2_coeffs, n_so3_coeffs, so3_blocks
 
 LEVEL = 3  # the training grid
 LOG_N = math.log(72 * 8**LEVEL)  # uniform's loss: 10.51
@@ -105,6 +105,45 @@ def test_initialisation_before_the_ablation_starts_far_above_uniform(single_thre
     """The bound above can fail: the earlier initialisation (N(0, 1) filters, sum / sqrt(n) projection)."""
     loss = first_loss(build("i2s", init="unit", projector_normalization="sqrt"))
     assert loss > 2 * LOG_N  # measured 2.9 x
+
+
+def test_fourier_mlp_degree_power_changes_no_first_prediction(single_thread):
+    """``degree_power`` is a reparametrisation: with a random last layer the untrained network predicts
+    the same coefficients whatever the power (the weights are drawn larger by what the scale takes)."""
+    images = torch.randn(2, 3, SIZE, SIZE, generator=torch.Generator().manual_seed(0))
+    out = {}
+    for power in (0.0, 1.0, 2.5):
+        net = build("fourier_mlp", degree_power=power).eval()
+        with torch.no_grad():
+            out[power] = net(images)
+    torch.testing.assert_close(out[1.0], out[0.0], rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(out[2.5], out[0.0], rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("power", [0.0, 1.0])
+def test_fourier_mlp_adams_first_step_gives_degree_l_a_share_of_2l_plus_1_to_the_2_minus_2_power(power):
+    """Adam's first step moves every weight of the last layer by ``lr`` (the sign of its gradient); for
+    one image each coefficient then moves by the same amount times its degree's scale, so degree ``l``'s
+    share of the step's change to the logits (its ``(2l+1)^2`` coefficients' sum of squares) is
+    proportional to ``(2l+1)^(2 - 2 degree_power)``: ``(2l+1)^2`` as the coefficients come, equal with the
+    default power 1."""
+    lmax = 4
+    torch.manual_seed(0)
+    net = FourierMLP(ResNetEncoder(depth=18, weights=None), image_size=32, lmax=lmax, hidden=[16], degree_power=power)
+    net.eval()  # batch statistics of one image: BatchNorm's running ones instead; gradients flow the same
+    last = net.mlp[-1]
+    image = torch.randn(1, 3, 32, 32)
+    rotation = random_rotations(1, generator=torch.Generator().manual_seed(1))
+    loss = net.loss(net(image), rotation, 2).mean()
+    loss.backward()
+    torch.optim.Adam(last.parameters(), lr=1e-3, eps=1e-20).step()  # eps: a full step for small gradients too
+    with torch.no_grad():
+        change = net(image)[0]  # the last layer started at zero
+    share = torch.stack([change[block].pow(2).sum() for _, block in so3_blocks(lmax)])
+    # degree 0 is left out: it adds a constant to every logit, which the softmax ignores; its gradient is
+    # zero up to rounding, which Adam's first step turns into a full step all the same
+    expected = torch.tensor([(2.0 * l + 1) ** (2 - 2 * power) for l in range(1, lmax + 1)])
+    torch.testing.assert_close(share[1:] / share[1], expected / expected[0], rtol=1e-3, atol=0)
 
 
 def _mean_square_so3(coeffs: torch.Tensor, lmax: int) -> float:

@@ -21,7 +21,7 @@ from image2sphere.nn.s2_conv import S2Conv
 from image2sphere.nn.so3_conv import SO3Conv
 from image2sphere.so3.distribution import SO3Distribution, fourier_grid_nll
 from image2sphere.so3.grid import so3_tube_grid
-from image2sphere.so3.wigner import check_lmax, n_so3_coeffs
+from image2sphere.so3.wigner import check_lmax, n_so3_coeffs, so3_layout
 
 __all__ = ["I2S", "FourierMLP"]
 
@@ -177,6 +177,11 @@ class FourierMLP(_FourierNetwork):
         hidden: widths of the hidden layers.
         output_init: ``"zero"``: the last layer starts at zero (the first prediction is uniform), as
             I2S's last convolution; ``"random"``: drawn so that the first logits have about unit variance.
+        degree_power: the last layer's outputs of degree ``l`` are multiplied by ``(2l+1)^-degree_power``
+            (a reparametrisation: the same functions are reachable). ``0``: every coefficient as it
+            comes. An optimiser step of the same size in every weight (Adam's) changes the logits by
+            the same mean square per coefficient, so degree ``l`` gets a share ``(2l+1)^2`` of every
+            step, most of it in degrees whose gradient is noise; ``1`` gives every degree the same share.
     """
 
     def __init__(
@@ -187,10 +192,15 @@ class FourierMLP(_FourierNetwork):
         hidden: tuple[int, ...] | list[int] = (512,),
         num_classes: int = 0,
         output_init: str = "zero",
+        degree_power: float = 1.0,
     ):
         super().__init__(encoder, image_size, lmax, num_classes)
         if output_init not in OUTPUT_INITS:
             raise ValueError(f"output_init must be one of {OUTPUT_INITS}, got {output_init!r}")
+        if isinstance(degree_power, bool) or not isinstance(degree_power, (int, float)) or not degree_power >= 0:
+            raise ValueError(f"degree_power must be a number >= 0, got {degree_power!r}")
+        l_of = so3_layout(self.lmax)[0].to(torch.float64)
+        self.register_buffer("degree_scale", ((2 * l_of + 1) ** -float(degree_power)).float(), persistent=False)
         widths = [self.feature_channels, *hidden]
         layers: list[nn.Module] = []
         for a, b in zip(widths[:-1], widths[1:], strict=True):
@@ -202,6 +212,8 @@ class FourierMLP(_FourierNetwork):
         gain = 2.0 if hidden else 1.0
         if output_init == "random":
             nn.init.normal_(last.weight, std=math.sqrt(gain / widths[-1] / n_so3_coeffs(lmax)))
+            with torch.no_grad():  # the same first logits whatever degree_power is
+                last.weight.div_(self.degree_scale[:, None])
         else:
             nn.init.zeros_(last.weight)
         nn.init.zeros_(last.bias)
@@ -210,4 +222,4 @@ class FourierMLP(_FourierNetwork):
 
     def forward(self, images: torch.Tensor, class_index: torch.Tensor | None = None) -> torch.Tensor:
         """Images ``[B, 3, H, W]`` -> SO(3) coefficients ``[B, n_so3_coeffs(lmax)]``."""
-        return self.mlp(self.pooled_features(images, class_index))  # [B, C] -> [B, n_so3]
+        return self.mlp(self.pooled_features(images, class_index)) * self.degree_scale  # [B, C] -> [B, n_so3]

@@ -70,11 +70,17 @@ def _upgrade_run_config(run_config: dict, path: Path) -> None:
     """Spell out, in a checkpoint's stored config, the settings it was trained with that later
     versions changed the defaults of, so that rebuilding or resuming it keeps its behaviour.
 
-    * ``model.net.projector_normalization``: absent before it existed, when the projector divided
-      by ``sqrt(n)``; the default is now ``mean``.
+    * ``model.net.projector_normalization`` of I2S: absent before it existed, when the projector
+      divided by ``sqrt(n)``; the default is now ``mean``.
+    * ``model.net.degree_power`` of the Fourier MLP: absent before it existed, when the last layer's
+      outputs were the coefficients as they came (``0``); the default is now ``1``.
     """
     net = (run_config.get("model") or {}).get("net")
-    if not isinstance(net, dict) or not str(net.get("_target_", "")).endswith(".I2S"):
+    target = str(net.get("_target_", "")) if isinstance(net, dict) else ""
+    if target.endswith(".FourierMLP") and "degree_power" not in net:
+        net["degree_power"] = 0.0
+        log.info("%s predates model.net.degree_power: using 0, the scale it was trained with", path)
+    if not target.endswith(".I2S"):
         return
     if net.get("projector", "spatial") == "spatial" and "projector_normalization" not in net:
         net["projector_normalization"] = "sqrt"

@@ -20,7 +20,7 @@ import pytest
 import torch
 
 from image2sphere.nn import I2S, FourierMLP, ResNetEncoder
-from image2sphere.nn.projector import SpatialS2Projector
+from image2sphere.nn.projector import HarmonicS2Projector, SpatialS2Projector
 from image2sphere.nn.s2_conv import S2Conv
 from image2sphere.nn.so3_conv import SO3Conv
 from image2sphere.so3 import random_rotations, so3_tube_grid
@@ -144,6 +144,37 @@ def test_fourier_mlp_adams_first_step_gives_degree_l_a_share_of_2l_plus_1_to_the
     # zero up to rounding, which Adam's first step turns into a full step all the same
     expected = torch.tensor([(2.0 * l + 1) ** (2 - 2 * power) for l in range(1, lmax + 1)])
     torch.testing.assert_close(share[1:] / share[1], expected / expected[0], rtol=1e-3, atol=0)
+
+
+def test_harmonic_projector_degree_power_changes_no_first_signal():
+    """The harmonic projector's ``degree_power`` is a reparametrisation, as the Fourier MLP's."""
+    features = torch.randn(2, 16, 3, 3, generator=torch.Generator().manual_seed(1))
+    out = {}
+    for power in (0.0, 0.5, 2.0):
+        torch.manual_seed(0)
+        out[power] = HarmonicS2Projector(16, 4, lmax=3, hidden_channels=8, degree_power=power)(features).detach()
+    torch.testing.assert_close(out[0.5], out[0.0], rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(out[2.0], out[0.0], rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("power", [0.0, 0.5])
+def test_harmonic_projector_adams_first_step_gives_degree_l_a_share_of_2l_plus_1_to_the_1_minus_2_power(power):
+    """For S2 coefficients a degree has ``2l+1`` of them: Adam's first step (every weight of the last layer
+    by ``lr``) gives degree ``l`` a share ``(2l+1)^(1 - 2 degree_power)`` of the change to the signal,
+    equal for every degree at power 0.5. Without the ReLU on the sphere, whose output mixes degrees."""
+    lmax = 4
+    torch.manual_seed(0)
+    projector = HarmonicS2Projector(16, 1, lmax=lmax, hidden_channels=8, activation=False, degree_power=power)
+    last = projector.mlp[-1]
+    features = torch.randn(1, 16, 3, 3)
+    before = projector(features).detach()
+    target = torch.randn(before.shape)
+    (projector(features) * target).sum().backward()  # a gradient in every coefficient
+    torch.optim.Adam(last.parameters(), lr=1e-3, eps=1e-20).step()  # eps: a full step for small gradients too
+    change = (projector(features).detach() - before)[0, 0]
+    share = torch.stack([change[l**2 : (l + 1) ** 2].pow(2).sum() for l in range(lmax + 1)])
+    expected = torch.tensor([(2.0 * l + 1) ** (1 - 2 * power) for l in range(lmax + 1)])
+    torch.testing.assert_close(share / share[0], expected, rtol=1e-3, atol=0)
 
 
 def _mean_square_so3(coeffs: torch.Tensor, lmax: int) -> float:

@@ -66,6 +66,9 @@ class I2S(_FourierNetwork):
             lmax 8 and 10, docs/training_fidelity.md), taper start (75 deg), disk coverage (0.9) and
             Gaussian width (0.2, in units of half the map).
         harmonic_hidden: hidden width of the harmonic projector's MLP.
+        harmonic_degree_power: the harmonic projector's ``degree_power`` (0: its coefficients as they
+            come; 0.5: every degree an equal share of an optimiser step;
+            :class:`~image2sphere.nn.HarmonicS2Projector`).
         s2_kernel_level: HEALPix level of the spatial S2 filter's points.
         so3_kernel_max_deg: support of the SO(3) filter around the identity (22.5 deg).
         activation_resolution: resolution of e3nn's SO(3) grid for the ReLU.
@@ -102,6 +105,7 @@ class I2S(_FourierNetwork):
         coverage: float = 0.9,
         sigma: float = 0.2,
         harmonic_hidden: int = 512,
+        harmonic_degree_power: float = 0.0,
         s2_kernel_level: int = 2,
         so3_kernel_max_deg: float = 22.5,
         activation_resolution: int = 8,
@@ -139,6 +143,7 @@ class I2S(_FourierNetwork):
                 sphere_channels=sphere_channels,
                 lmax=lmax,
                 hidden_channels=harmonic_hidden,
+                degree_power=harmonic_degree_power,
             )
         s2_out = so3_channels if n_so3_conv > 0 else 1
         self.s2_conv = S2Conv(

@@ -188,6 +188,14 @@ class HarmonicS2Projector(nn.Module):
     ``1 / sqrt(2l + 1)``); the ReLU being positively homogeneous, the constant cancels on the way back.
     As the spatial projection's ReLU, it makes each channel a non-negative signal.
 
+    ``degree_power``: the MLP's outputs of degree ``l`` are multiplied by ``(2l+1)^-degree_power``, a
+    reparametrisation (the first signal is the same, the weights drawn larger by what the scale takes).
+    An optimiser step of the same size in every weight (Adam's) changes each coefficient's share of the
+    signal alike, so degree ``l`` takes a share ``2l+1`` of every step with ``0`` (the default, the
+    original code's); ``0.5`` gives every degree the same share, as :class:`~image2sphere.nn.FourierMLP`'s
+    ``degree_power=1`` does for SO(3). Measured with one seed, 0.5 helped the Fourier filter and hurt the
+    spatial filter (docs/training_fidelity.md, "The Fourier basis with an MLP").
+
     Input ``[B, in_channels, H, W]``; output ``[B, sphere_channels, (lmax+1)^2]``.
     """
 
@@ -199,15 +207,22 @@ class HarmonicS2Projector(nn.Module):
         hidden_channels: int = 512,
         activation: bool = True,
         activation_resolution: int | None = None,
+        degree_power: float = 0.0,
     ):
         super().__init__()
         self.lmax = check_lmax(lmax)
         self.sphere_channels = sphere_channels
+        if isinstance(degree_power, bool) or not isinstance(degree_power, (int, float)) or not degree_power >= 0:
+            raise ValueError(f"degree_power must be a number >= 0, got {degree_power!r}")
+        degree = torch.cat([torch.full((2 * l + 1,), float(l), dtype=torch.float64) for l in range(self.lmax + 1)])
+        self.register_buffer("degree_scale", ((2 * degree + 1) ** -float(degree_power)).float(), persistent=False)
         last = nn.Linear(hidden_channels, sphere_channels * n_s2_coeffs(lmax))
         # each channel's S2 signal (mean square = sum of its (lmax+1)^2 coefficients squared) starts at
         # about the size the spatial projector gives, not (lmax+1)^2 times larger
         nn.init.normal_(last.weight, std=1 / math.sqrt(hidden_channels * n_s2_coeffs(lmax)))
         nn.init.zeros_(last.bias)
+        with torch.no_grad():  # the same first signal whatever degree_power is
+            last.weight.view(sphere_channels, n_s2_coeffs(lmax), hidden_channels).div_(self.degree_scale[:, None])
         self.mlp = nn.Sequential(nn.Linear(in_channels, hidden_channels), nn.ReLU(), last)
         # degree l has parity (-1)^l, as a function on the sphere
         irreps = o3.Irreps.spherical_harmonics(lmax, p=-1)
@@ -219,4 +234,5 @@ class HarmonicS2Projector(nn.Module):
             raise ValueError(f"feature map must have shape (batch, channels, H, W), got {tuple(features.shape)}")
         pooled = features.mean(dim=(-1, -2))  # [B, C]
         coeffs = self.mlp(pooled).view(len(features), self.sphere_channels, n_s2_coeffs(self.lmax))
+        coeffs = coeffs * self.degree_scale  # [B, S, (L+1)^2]
         return self.act(coeffs)  # [B, S, (L+1)^2]

@@ -310,35 +310,28 @@ def test_checkpoint_from_before_projector_normalization_keeps_its_rule(tmp_path,
     assert build_module(current, "current").net.projector.normalization == "mean"
 
 
-def _old_checkpoint(tmp_path: Path, overrides: list[str], key: str, today: float) -> tuple:
-    """A checkpoint of the network the real config builds with ``overrides`` (weights drawn, none trained)
-    whose stored config lacks ``model.net.<key>``, as the code before that key wrote it; and that module."""
-    from hydra import compose, initialize
-    from hydra.utils import instantiate
-    from omegaconf import OmegaConf
-
-    with initialize(version_base="1.3", config_path="../conf"):
-        cfg = compose(config_name="train", overrides=["lmax=2", "dataset.image_size=32", *overrides])
-    model_cfg = OmegaConf.to_container(cfg.model, resolve=True)
-    assert model_cfg["net"][key] == today  # today's default
-    torch.manual_seed(0)
-    module = instantiate(OmegaConf.create(model_cfg))
-    with torch.no_grad():  # weights in the zero-initialised last layer, so that the output shows every scale
-        last = module.net.mlp[-1] if hasattr(module.net, "mlp") else module.net.output_layer
-        last.weight.normal_()
-    del model_cfg["net"][key]
-    path = tmp_path / "old.ckpt"
-    torch.save({"state_dict": module.state_dict(), "run_config": {"model": model_cfg}}, path)
-    return path, module
-
-
 def test_fourier_mlp_checkpoint_from_before_degree_power_predicts_as_it_was_trained(tmp_path):
     """A Fourier MLP checkpoint written before ``model.net.degree_power`` existed held the coefficients as
     the last layer gave them (power 0); rebuilt today it must predict exactly that, not today's default 1.
     Quick: a 32 px network built from the real config, no training."""
+    from hydra import compose, initialize
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
     from image2sphere.training.checkpoint import build_module, load_checkpoint
 
-    path, module = _old_checkpoint(tmp_path, ["model=fourier_mlp"], "degree_power", 1.0)
+    with initialize(version_base="1.3", config_path="../conf"):
+        cfg = compose(config_name="train", overrides=["model=fourier_mlp", "lmax=2", "dataset.image_size=32"])
+    model_cfg = OmegaConf.to_container(cfg.model, resolve=True)
+    assert model_cfg["net"]["degree_power"] == 1.0  # today's default
+    torch.manual_seed(0)
+    module = instantiate(OmegaConf.create(model_cfg))
+    with torch.no_grad():  # weights in the zero-initialised last layer, so that a scale would show
+        module.net.mlp[-1].weight.normal_()
+    del model_cfg["net"]["degree_power"]  # as a run of the earlier code stored it
+    path = tmp_path / "old.ckpt"
+    torch.save({"state_dict": module.state_dict(), "run_config": {"model": model_cfg}}, path)
+
     loaded = load_checkpoint(path)
     assert loaded["run_config"]["model"]["net"]["degree_power"] == 0.0
     rebuilt = build_module(loaded, path).net

@@ -21,7 +21,7 @@ from image2sphere.nn.s2_conv import S2Conv
 from image2sphere.nn.so3_conv import SO3Conv
 from image2sphere.so3.distribution import SO3Distribution, fourier_grid_nll
 from image2sphere.so3.grid import so3_tube_grid
-from image2sphere.so3.wigner import check_lmax, n_so3_coeffs, so3_layout
+from image2sphere.so3.wigner import check_lmax, degree_scale, n_so3_coeffs, so3_layout
 
 __all__ = ["I2S", "FourierMLP"]
 
@@ -202,10 +202,7 @@ class FourierMLP(_FourierNetwork):
         super().__init__(encoder, image_size, lmax, num_classes)
         if output_init not in OUTPUT_INITS:
             raise ValueError(f"output_init must be one of {OUTPUT_INITS}, got {output_init!r}")
-        if isinstance(degree_power, bool) or not isinstance(degree_power, (int, float)) or not degree_power >= 0:
-            raise ValueError(f"degree_power must be a number >= 0, got {degree_power!r}")
-        l_of = so3_layout(self.lmax)[0].to(torch.float64)
-        self.register_buffer("degree_scale", ((2 * l_of + 1) ** -float(degree_power)).float(), persistent=False)
+        self.register_buffer("degree_scale", degree_scale(so3_layout(self.lmax)[0], degree_power), persistent=False)
         widths = [self.feature_channels, *hidden]
         layers: list[nn.Module] = []
         for a, b in zip(widths[:-1], widths[1:], strict=True):

@@ -21,7 +21,7 @@ from e3nn.nn import S2Activation
 from torch import nn
 
 from image2sphere.so3.grid import s2_healpix_grid
-from image2sphere.so3.wigner import check_lmax, n_s2_coeffs
+from image2sphere.so3.wigner import check_lmax, degree_scale, n_s2_coeffs
 
 __all__ = ["HarmonicS2Projector", "SpatialS2Projector", "orthographic_interpolation"]
 
@@ -212,10 +212,9 @@ class HarmonicS2Projector(nn.Module):
         super().__init__()
         self.lmax = check_lmax(lmax)
         self.sphere_channels = sphere_channels
-        if isinstance(degree_power, bool) or not isinstance(degree_power, (int, float)) or not degree_power >= 0:
-            raise ValueError(f"degree_power must be a number >= 0, got {degree_power!r}")
-        degree = torch.cat([torch.full((2 * l + 1,), float(l), dtype=torch.float64) for l in range(self.lmax + 1)])
-        self.register_buffer("degree_scale", ((2 * degree + 1) ** -float(degree_power)).float(), persistent=False)
+        l = torch.arange(self.lmax + 1)
+        degrees = torch.repeat_interleave(l, 2 * l + 1)  # [(L+1)^2]: the degree of each S2 coefficient
+        self.register_buffer("degree_scale", degree_scale(degrees, degree_power), persistent=False)
         last = nn.Linear(hidden_channels, sphere_channels * n_s2_coeffs(lmax))
         # each channel's S2 signal (mean square = sum of its (lmax+1)^2 coefficients squared) starts at
         # about the size the spatial projector gives, not (lmax+1)^2 times larger

@@ -23,6 +23,7 @@ from image2sphere.so3.rotations import check_rotation_matrix, matrix_to_angles
 
 __all__ = [
     "check_lmax",
+    "degree_scale",
     "flat_wigner",
     "flat_wigner_from_angles",
     "left_translate_so3_coeffs",
@@ -93,6 +94,14 @@ def _so3_layout(lmax: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         ms.append(mm.reshape(-1))
         ns.append(nn_.reshape(-1))
     return torch.cat(ls), torch.cat(ms), torch.cat(ns)
+
+
+def degree_scale(degrees: torch.Tensor, power, name: str = "degree_power") -> torch.Tensor:
+    """``(2l+1)^-power`` (float32) for the degree ``l`` of each coefficient in ``degrees`` (e.g.
+    ``so3_layout(lmax)[0]``); ``ValueError`` naming ``name`` unless ``power`` is a number >= 0."""
+    if isinstance(power, bool) or not isinstance(power, (int, float)) or not power >= 0:
+        raise ValueError(f"{name} must be a number >= 0, got {power!r}")
+    return ((2 * degrees.to(torch.float64) + 1) ** -float(power)).float()
 
 
 @contextlib.contextmanager

@@ -223,6 +223,10 @@ def test_model_bad_input(resnet18):
         I2S(resnet18, n_so3_conv=3)
     with pytest.raises(ValueError, match="projector"):
         I2S(resnet18, projector="fourier")
+    with pytest.raises(ValueError, match="degree_power must be a number >= 0, got -1"):
+        FourierMLP(resnet18, image_size=64, lmax=2, degree_power=-1)
+    with pytest.raises(ValueError, match="degree_power must be a number >= 0, got True"):
+        HarmonicS2Projector(8, lmax=2, degree_power=True)
     model = I2S(resnet18, image_size=64, num_classes=2, sphere_channels=8, activation_resolution=4, lmax=2)
     with pytest.raises(ValueError, match="pass class_index"):
         model(torch.randn(1, 3, 64, 64))

@@ -310,6 +310,23 @@ def test_checkpoint_from_before_projector_normalization_keeps_its_rule(tmp_path,
     assert build_module(current, "current").net.projector.normalization == "mean"
 
 
+def test_i2s_checkpoint_from_before_the_relu_grid_rule_keeps_resolution_8(tmp_path, trained):
+    """Before ``activation_resolution`` followed the band limit, I2S's ReLU grid was 8 at every lmax. The
+    trained fixture is at lmax 3, where today's rule gives 5, so the rebuilt grid shows which rule was used."""
+    from image2sphere.nn import SO3ReLU
+    from image2sphere.training.checkpoint import build_module, load_checkpoint
+
+    ckpt = torch.load(trained / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    net_cfg = ckpt["run_config"]["model"]["net"]
+    del net_cfg["activation_resolution"]
+    old = tmp_path / "old.ckpt"
+    torch.save(ckpt, old)
+    loaded = load_checkpoint(old)
+    assert loaded["run_config"]["model"]["net"]["activation_resolution"] == 8
+    relus = [m for m in build_module(loaded, old).net.modules() if isinstance(m, SO3ReLU)]
+    assert relus and all(m.resolution == 8 for m in relus) and net_cfg["lmax"] + 2 != 8
+
+
 def test_fourier_mlp_checkpoint_from_before_degree_power_predicts_as_it_was_trained(tmp_path):
     """A Fourier MLP checkpoint written before ``model.net.degree_power`` existed held the coefficients as
     the last layer gave them (power 0); rebuilt today it must predict exactly that, not today's default 1.

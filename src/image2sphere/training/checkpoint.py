@@ -74,6 +74,8 @@ def _upgrade_run_config(run_config: dict, path: Path) -> None:
       divided by ``sqrt(n)``; the default is now ``mean``.
     * ``model.net.degree_power`` of the Fourier MLP: absent before it existed, when the last layer's
       outputs were the coefficients as they came (``0``); the default is now ``1``.
+    * ``model.net.activation_resolution`` of I2S: absent, the ReLU's grid was 8 whatever lmax was; the
+      default (``null``) is now ``lmax + 2``.
     """
     net = (run_config.get("model") or {}).get("net")
     target = str(net.get("_target_", "")) if isinstance(net, dict) else ""
@@ -82,6 +84,9 @@ def _upgrade_run_config(run_config: dict, path: Path) -> None:
         log.info("%s predates model.net.degree_power: using 0, the scale it was trained with", path)
     if not target.endswith(".I2S"):
         return
+    if "activation_resolution" not in net:
+        net["activation_resolution"] = 8
+        log.info("%s predates the ReLU grid's band-limit rule: using resolution 8, the grid it was trained with", path)
     if net.get("projector", "spatial") == "spatial" and "projector_normalization" not in net:
         net["projector_normalization"] = "sqrt"
         log.info("%s predates model.net.projector_normalization: using 'sqrt', the rule it was trained with", path)

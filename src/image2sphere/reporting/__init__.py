@@ -1,6 +1,8 @@
-"""The paper's tables from finished runs (``python -m src.tables``): run discovery, the tables'
-layouts and published numbers (``paper_tables.yaml``), Markdown, LaTeX and figures."""
+"""Tables of results: the paper's tables from finished runs (``python -m src.tables``: run discovery,
+the tables' layouts and published numbers in ``paper_tables.yaml``, Markdown, LaTeX and figures), and
+the metrics table of one run that ``src.train`` and ``src.eval`` print and write (:mod:`.metrics_table`)."""
 
+from image2sphere.reporting.metrics_table import format_metrics_markdown, format_metrics_table
 from image2sphere.reporting.runs import Run, UnfinishedRun, find_runs
 from image2sphere.reporting.tables import FilledTable, build_table, draw_figure, load_layouts, to_latex, to_markdown
 
@@ -11,6 +13,8 @@ __all__ = [
     "build_table",
     "draw_figure",
     "find_runs",
+    "format_metrics_markdown",
+    "format_metrics_table",
     "load_layouts",
     "to_latex",
     "to_markdown",

@@ -21,36 +21,14 @@ from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from image2sphere.reporting.metrics_table import format_metrics_markdown, format_metrics_table
 from image2sphere.training.checkpoint import CheckpointError, build_module, load_checkpoint
-from image2sphere.training.pipeline import (
-    TABLE_COLUMNS,
-    _finish_loggers,
-    _instantiate_list,
-    ddp_children_run_this_job,
-    format_metrics_table,
-)
+from image2sphere.training.pipeline import _finish_loggers, _instantiate_list, ddp_children_run_this_job
 from image2sphere.training.run_config import check_eval_config, command_line, override_key
 
-__all__ = ["evaluate", "format_metrics_markdown"]
+__all__ = ["evaluate"]
 
 log = logging.getLogger(__name__)
-
-
-def format_metrics_markdown(metrics: dict[str, float], class_names: list[str]) -> str:
-    """Per-class rows and the class mean as a markdown table: the columns of the printed table, a
-    metric the method does not have (a point regressor's log likelihood, spread and calibration)
-    reading ``n/a``."""
-    lines = [
-        "| class | " + " | ".join(title for _, title, _ in TABLE_COLUMNS) + " |",
-        "|---" * (len(TABLE_COLUMNS) + 1) + "|",
-    ]
-    for name in [*class_names, "mean"]:
-        key = "" if name == "mean" else f"/{name}"
-        if any(metric + key in metrics for metric, _, _ in TABLE_COLUMNS):
-            cells = [fmt.format(metrics[metric + key]).strip() if metric + key in metrics else "n/a"
-                     for metric, _, fmt in TABLE_COLUMNS]  # fmt: skip
-            lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
 
 
 def _datamodule(cfg: DictConfig, ckpt: dict):

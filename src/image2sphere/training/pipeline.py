@@ -24,23 +24,15 @@ from hydra.utils import instantiate
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from image2sphere.reporting.metrics_table import format_metrics_table
 from image2sphere.training.checkpoint import load_checkpoint
 from image2sphere.training.checkpointing import TrainingInterrupted
 from image2sphere.training.module import NonFiniteLossError
 from image2sphere.training.run_config import check_train_config, describe_run, protocol_settings, resume_config
 
-__all__ = ["ddp_children_run_this_job", "format_metrics_table", "is_secondary_rank", "register_resolvers", "train"]
+__all__ = ["ddp_children_run_this_job", "is_secondary_rank", "register_resolvers", "train"]
 
 log = logging.getLogger(__name__)
-
-TABLE_COLUMNS = (
-    ("log_likelihood", "log lik.", "{:9.3f}"),
-    ("spread_deg", "spread", "{:8.2f}"),
-    ("calibration_ece", "ECE", "{:6.3f}"),
-    ("acc15", "acc@15", "{:7.3f}"),
-    ("acc30", "acc@30", "{:7.3f}"),
-    ("median_error_deg", "med.err", "{:8.2f}"),
-)
 
 
 def slurm_job_id() -> str | None:
@@ -119,23 +111,6 @@ def requeue_checkpoint(output_dir: Path) -> str | None:
     if not is_slurm_requeue(output_dir) or any(output_dir.glob("hpc_ckpt_*.ckpt")):
         return None
     return str(output_dir / "checkpoints" / "last.ckpt")
-
-
-def format_metrics_table(metrics: dict[str, float], class_names: list[str]) -> str:
-    """Per-class rows and the class mean as a fixed-width text table. Every column is shown; a metric
-    the method does not have (a point regressor's log likelihood, spread and calibration) reads ``n/a``."""
-    columns = TABLE_COLUMNS
-    width = max([len(n) for n in class_names] + [len("mean")])
-    lines = [" ".join([f"{'class':<{width}}"] + [f"{title:>{len(fmt.format(0.0))}}" for _, title, fmt in columns])]
-    for name in [*class_names, "mean"]:
-        key = "" if name == "mean" else f"/{name}"
-        cells = []
-        for metric, _, fmt in columns:
-            value = metrics.get(metric + key)
-            cells.append(fmt.format(value) if value is not None else f"{'n/a':>{len(fmt.format(0.0))}}")
-        if any(metric + key in metrics for metric, _, _ in columns):
-            lines.append(" ".join([f"{name:<{width}}", *cells]))
-    return "\n".join(lines)
 
 
 def _instantiate_list(group: DictConfig | None, what: str) -> list:

@@ -23,7 +23,8 @@ import torch
 import yaml
 
 from conftest import ENV, REPO, read_metrics, run_module, run_train, train_command
-from image2sphere.training.pipeline import is_secondary_rank, is_slurm_requeue, requeue_checkpoint, sqlite_storage
+from image2sphere.training.cluster import is_secondary_rank, is_slurm_requeue, requeue_checkpoint
+from image2sphere.training.resolvers import sqlite_storage
 
 TEST_PER_SHAPE = 7  # 2 shapes: 14 test images; 2 ranks x batch 4 = 8 does not divide 14
 DDP = ["trainer=ddp", "trainer.devices=2", f"dataset.render.test={TEST_PER_SHAPE}", "dataset.batch_size=4"]

@@ -23,7 +23,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from image2sphere.reporting.metrics_table import format_metrics_markdown, format_metrics_table
 from image2sphere.training.checkpoint import CheckpointError, build_module, load_checkpoint
-from image2sphere.training.pipeline import _finish_loggers, _instantiate_list, ddp_children_run_this_job
+from image2sphere.training.cluster import ddp_children_run_this_job
+from image2sphere.training.pipeline import finish_loggers, instantiate_list
 from image2sphere.training.run_config import check_eval_config, command_line, override_key
 
 __all__ = ["evaluate"]
@@ -90,7 +91,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
             f"the model takes the class as input and was trained with classes {trained}; the dataset has {names}"
         )
     module.class_names = names or trained
-    loggers = _instantiate_list(cfg.get("logger"), "logger")
+    loggers = instantiate_list(cfg.get("logger"), "logger")
     trainer: pl.Trainer = instantiate(cfg.trainer, logger=loggers or False, callbacks=[], enable_checkpointing=False)
     start = time.perf_counter()
     with ddp_children_run_this_job():  # in a multirun job, the other DDP ranks start as this job
@@ -115,7 +116,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
         print(f"\nTest metrics ({cfg.ckpt_path}, eval grid level {cfg.eval_grid_level}, refine={bool(cfg.refine)}):")
         print(format_metrics_table(metrics, module.class_names))
         print(f"Run directory: {output_dir}\n")
-    _finish_loggers(loggers)
+    finish_loggers(loggers)
     return metrics
 
 

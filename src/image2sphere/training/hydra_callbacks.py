@@ -9,7 +9,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from image2sphere.training.pipeline import is_secondary_rank, is_slurm_requeue
+from image2sphere.training.cluster import is_secondary_rank, is_slurm_requeue
 
 __all__ = ["RefuseExistingOutputDir"]
 
@@ -22,7 +22,7 @@ class RefuseExistingOutputDir(Callback):
     default directories are unique per run (date, time and process id) and never trigger this.
     The process exits with status 1 and a message naming the directory.
 
-    The other ranks of a distributed run (:func:`~image2sphere.training.pipeline.is_secondary_rank`:
+    The other ranks of a distributed run (:func:`~image2sphere.training.cluster.is_secondary_rank`:
     the processes Lightning starts for ``trainer=ddp``, the tasks of a multi-task SLURM job) join the
     directory rank 0 made: they pass, and Hydra does not write their ``.hydra/`` over rank 0's.
     """

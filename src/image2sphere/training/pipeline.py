@@ -8,14 +8,10 @@ a run refuses to start in a directory that already holds checkpoints or metrics.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
-import os
 import signal
-import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import lightning.pytorch as pl
@@ -27,94 +23,23 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from image2sphere.reporting.metrics_table import format_metrics_table
 from image2sphere.training.checkpoint import load_checkpoint
 from image2sphere.training.checkpointing import TrainingInterrupted
+from image2sphere.training.cluster import (
+    ddp_children_run_this_job,
+    is_secondary_rank,
+    is_slurm_requeue,
+    requeue_checkpoint,
+    slurm_job_id,
+)
 from image2sphere.training.module import NonFiniteLossError
 from image2sphere.training.run_config import check_train_config, describe_run, protocol_settings, resume_config
 
-__all__ = ["ddp_children_run_this_job", "is_secondary_rank", "register_resolvers", "train"]
+__all__ = ["finish_loggers", "instantiate_list", "train"]
 
 log = logging.getLogger(__name__)
 
 
-def slurm_job_id() -> str | None:
-    """The id of the SLURM job this process runs in (``<array job>_<task>`` for array jobs), else ``None``."""
-    array, task = os.environ.get("SLURM_ARRAY_JOB_ID"), os.environ.get("SLURM_ARRAY_TASK_ID")
-    if array and task:
-        return f"{array}_{task}"
-    return os.environ.get("SLURM_JOB_ID") or None
-
-
-def is_secondary_rank() -> bool:
-    """True in a process that a distributed launcher started as one of the other ranks of a run (not rank 0).
-
-    The ranks of one run share its directory, which rank 0 creates: Lightning starts the other local
-    processes of ``strategy=ddp`` again with ``LOCAL_RANK`` set (and ``hydra.run.dir`` pointing at rank
-    0's directory), ``srun`` starts every task of a SLURM job with its ``SLURM_PROCID`` (all in
-    ``runs/slurm_<job id>``), torchrun sets ``RANK``. Read from the environment, before any process group
-    exists.
-    """
-    slurm_tasks = os.environ.get("SLURM_NTASKS", "1")
-    variables = ["RANK", "LOCAL_RANK", "NODE_RANK", "GROUP_RANK"]
-    if slurm_tasks.isdigit() and int(slurm_tasks) > 1:
-        variables.append("SLURM_PROCID")
-    for name in variables:
-        value = os.environ.get(name, "").strip()
-        if value.isdigit() and int(value) > 0:
-            return True
-    return False
-
-
-def _run_id(timestamp: str) -> str:
-    job = slurm_job_id()
-    return f"slurm_{job}" if job else f"{timestamp}_{os.getpid()}"
-
-
-def register_resolvers() -> None:
-    """OmegaConf resolvers used by ``conf/``.
-
-    ``${pid:}``: this process id. ``${run_id:<timestamp>}``: the name of a run directory,
-    ``<timestamp>_<pid>`` (unique per run), or ``slurm_<job id>`` inside a SLURM job, so that a job
-    requeued by SLURM finds its own directory and its checkpoints again. ``${sqlite_storage:<file>}``:
-    see :func:`sqlite_storage`.
-    """
-    if not OmegaConf.has_resolver("pid"):
-        OmegaConf.register_new_resolver("pid", lambda: os.getpid(), use_cache=True)
-    if not OmegaConf.has_resolver("run_id"):
-        OmegaConf.register_new_resolver("run_id", _run_id, use_cache=True)
-    if not OmegaConf.has_resolver("sqlite_storage"):
-        OmegaConf.register_new_resolver("sqlite_storage", sqlite_storage)
-
-
-def sqlite_storage(path: str) -> str:
-    """``${sqlite_storage:<file>}``: the SQLAlchemy URL of an SQLite database at ``file`` (an Optuna study's
-    storage), its folder created so that the first trial can write it."""
-    file = Path(path).expanduser().resolve()
-    file.parent.mkdir(parents=True, exist_ok=True)
-    return f"sqlite:///{file}"
-
-
-def is_slurm_requeue(output_dir: Path) -> bool:
-    """True for a SLURM job that was requeued (or pre-empted and requeued, or resubmitted by submitit after
-    its time limit: the same job id, ``SLURM_RESTART_COUNT > 0``) and left a checkpoint in ``output_dir``:
-    Lightning's requeue checkpoint ``hpc_ckpt_*.ckpt`` or the run's ``checkpoints/last.ckpt``."""
-    restarts = os.environ.get("SLURM_RESTART_COUNT", "0")
-    return (
-        slurm_job_id() is not None
-        and restarts.isdigit()
-        and int(restarts) > 0
-        and (any(output_dir.glob("hpc_ckpt_*.ckpt")) or (output_dir / "checkpoints" / "last.ckpt").is_file())
-    )
-
-
-def requeue_checkpoint(output_dir: Path) -> str | None:
-    """The checkpoint a requeued SLURM job continues from when Lightning's own does not apply: the run's
-    ``last.ckpt`` when there is no ``hpc_ckpt_*.ckpt`` (which Lightning finds by itself)."""
-    if not is_slurm_requeue(output_dir) or any(output_dir.glob("hpc_ckpt_*.ckpt")):
-        return None
-    return str(output_dir / "checkpoints" / "last.ckpt")
-
-
-def _instantiate_list(group: DictConfig | None, what: str) -> list:
-    """Every entry of a config group that has a ``_target_`` (others are ignored)."""
+def instantiate_list(group: DictConfig | None, what: str) -> list:
+    """Every entry of a config group (``callbacks``, ``logger``) that has a ``_target_`` (others are ignored)."""
     out = []
     if not group:
         return out
@@ -125,50 +50,6 @@ def _instantiate_list(group: DictConfig | None, what: str) -> list:
             log.info("Instantiating %s %s <%s>", what, name, conf._target_)
             out.append(instantiate(conf))
     return out
-
-
-@contextlib.contextmanager
-def ddp_children_run_this_job() -> Iterator[None]:
-    """Inside a job of a Hydra multirun: the processes Lightning starts for the other local ranks of
-    ``trainer=ddp`` run this job, in this job's directory, instead of the whole sweep again.
-
-    Lightning starts each of them with this process's command line plus
-    ``hydra.run.dir=<HydraConfig run.dir>``; in a multirun job that command line is the sweep (``-m``
-    and every value) and ``run.dir`` is not the job's directory. For the duration of the block the
-    command line is this job's own overrides as a single run (``hydra.mode=RUN``) and ``run.dir`` the
-    job's output directory. Outside a multirun it does nothing.
-    """
-    from hydra.core.hydra_config import HydraConfig
-    from hydra.types import RunMode
-
-    if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
-        yield
-        return
-    hc = HydraConfig.get()
-    argv, run_dir = list(sys.argv), hc.run.dir
-    environment = {name: os.environ.get(name) for name in _LAUNCHER_VARIABLES}
-    sys.argv = [sys.argv[0], *hc.overrides.task, "hydra.mode=RUN"]
-    OmegaConf.set_readonly(hc, False)
-    hc.run.dir = hc.runtime.output_dir
-    try:
-        yield
-    finally:
-        sys.argv = argv
-        hc.run.dir = run_dir
-        OmegaConf.set_readonly(hc, True)
-        # the next job of the sweep starts its own ranks: this job's process group (its other ranks have
-        # exited) and the variables Lightning's launcher set for it must not carry over
-        if torch.distributed.is_available() and torch.distributed.is_initialized():
-            torch.distributed.destroy_process_group()
-        for name, value in environment.items():
-            if value is None:
-                os.environ.pop(name, None)
-            else:
-                os.environ[name] = value
-
-
-# what Lightning's process launcher sets in the environment of the process that starts the other ranks
-_LAUNCHER_VARIABLES = ("MASTER_ADDR", "MASTER_PORT", "NODE_RANK", "LOCAL_RANK", "WORLD_SIZE")
 
 
 def train(cfg: DictConfig) -> dict[str, float]:
@@ -226,9 +107,9 @@ def _train(cfg: DictConfig) -> dict[str, float]:
     if model.class_names is None:
         model.class_names = list(getattr(datamodule, "class_names", []) or []) or None
     model.run_config = OmegaConf.to_container(cfg, resolve=True)
-    callbacks = _instantiate_list(cfg.get("callbacks"), "callback")
+    callbacks = instantiate_list(cfg.get("callbacks"), "callback")
     # a smoke run (fast_dev_run) writes no logger files: Lightning would only silence the loggers
-    loggers = [] if cfg.trainer.get("fast_dev_run") else _instantiate_list(cfg.get("logger"), "logger")
+    loggers = [] if cfg.trainer.get("fast_dev_run") else instantiate_list(cfg.get("logger"), "logger")
     if not loggers:  # the learning-rate monitor needs a logger to write to
         callbacks = [c for c in callbacks if not isinstance(c, pl.callbacks.LearningRateMonitor)]
     trainer: pl.Trainer = instantiate(_trainer_config(cfg.trainer), callbacks=callbacks, logger=loggers or False)
@@ -247,10 +128,10 @@ def _train(cfg: DictConfig) -> dict[str, float]:
         try:
             trainer.fit(model=model, datamodule=datamodule, ckpt_path=fit_ckpt)
         except TrainingInterrupted as e:
-            _finish_loggers(loggers)
+            finish_loggers(loggers)
             _exit_interrupted(e)
         except SIGTERMException:  # Lightning's stop of a DDP run on SIGTERM; EpochCheckpoint wrote last.ckpt
-            _finish_loggers(loggers)
+            finish_loggers(loggers)
             last = output_dir / "checkpoints" / "last.ckpt"
             checkpoint = str(last) if last.is_file() else None
             epoch, step = trainer.current_epoch, trainer.global_step
@@ -284,7 +165,7 @@ def _train(cfg: DictConfig) -> dict[str, float]:
             print(f"\nTest metrics ({cfg.get('task_name')}, eval grid level {model.hparams.eval_grid_level}):")
             print(format_metrics_table(metrics, names))
             print(f"Run directory: {output_dir}\n")
-    _finish_loggers(loggers)
+    finish_loggers(loggers)
     return {**metrics, **timings}
 
 
@@ -338,7 +219,8 @@ def _exit_interrupted(e: TrainingInterrupted) -> None:
     raise SystemExit(128 + e.signum)
 
 
-def _finish_loggers(loggers: list) -> None:
+def finish_loggers(loggers: list) -> None:
+    """Close the run of a wandb logger (the others need nothing)."""
     for logger in loggers:
         if type(logger).__name__ == "WandbLogger":
             import wandb

@@ -27,7 +27,7 @@ from torch import nn
 from torch.utils.data import DataLoader, TensorDataset
 
 from conftest import ENV, REPO, TINY, run_train, train_command
-from image2sphere.training.checkpointing import AtomicCheckpointIO, EpochCheckpoint
+from image2sphere.training.checkpoint import AtomicCheckpointIO, EpochCheckpoint
 
 STEPS_PER_EPOCH_BS2 = 8  # 2 shapes x (10 - 2 validation) images in batches of 2
 

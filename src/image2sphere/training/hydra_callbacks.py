@@ -31,7 +31,7 @@ class RefuseExistingOutputDir(Callback):
         HydraConfig.instance().set_config(config)  # lets ${hydra:...} in the directory resolve
         path = Path(str(OmegaConf.select(config, key)))
         if key == "hydra.run.dir" and is_slurm_requeue(path):
-            return  # a requeued SLURM job continues in its own directory (see training.checkpointing)
+            return  # a requeued SLURM job continues in its own directory (see training.checkpoint)
         if path.is_dir() and any(path.iterdir()):
             # Hydra turns exceptions raised by callbacks into warnings; SystemExit does stop the run.
             raise SystemExit(

@@ -348,5 +348,5 @@ class PoseEstimationModule(pl.LightningModule):
         # generator. Reseeding it from (seed, global step) before every step makes each step's draws
         # independent of everything before it, so a run resumed from a checkpoint, one written at an
         # epoch's end or in the middle of an epoch, continues exactly as the uninterrupted run (the data
-        # order and labels follow the same rule, see image2sphere.training.checkpointing).
+        # order and labels follow the same rule, see image2sphere.training.checkpoint).
         torch.manual_seed(stable_seed("train-step", self._seed_base, self.global_step))

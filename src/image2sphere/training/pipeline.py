@@ -21,8 +21,7 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from image2sphere.reporting.metrics_table import format_metrics_table
-from image2sphere.training.checkpoint import load_checkpoint
-from image2sphere.training.checkpointing import TrainingInterrupted
+from image2sphere.training.checkpoint import TrainingInterrupted, load_checkpoint
 from image2sphere.training.cluster import (
     ddp_children_run_this_job,
     is_secondary_rank,

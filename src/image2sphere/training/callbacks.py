@@ -1,4 +1,8 @@
-"""Lightning callbacks of the training run."""
+"""Lightning callbacks of the training run: the ``callbacks`` config group (``conf/callbacks/``).
+
+The checkpoint callback, :class:`~image2sphere.training.checkpoint.EpochCheckpoint`, is with the rest
+of checkpointing; Hydra's callbacks, which run before the task, are :mod:`.hydra_callbacks`.
+"""
 
 from __future__ import annotations
 

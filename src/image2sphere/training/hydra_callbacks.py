@@ -1,4 +1,6 @@
-"""Hydra callbacks used by ``conf/hydra/default.yaml``."""
+"""Hydra callbacks (``hydra.callbacks`` in ``conf/hydra/default.yaml``): they hook into Hydra's start of
+a run or sweep, before the task and its directory's files. The trainer's (Lightning's) callbacks are
+:mod:`.callbacks`."""
 
 from __future__ import annotations
 

@@ -12,14 +12,22 @@ from scipy.spatial.transform import Rotation
 
 from conftest import haar_rotations
 from image2sphere.so3 import (
+    aet_biternions_to_matrix,
+    aet_to_matrix,
     angles_to_matrix,
     check_rotation_matrix,
     geodesic_distance,
     geodesic_distance_deg,
+    matrix_to_aet_biternions,
     matrix_to_angles,
+    matrix_to_quaternion,
     project_to_so3,
+    proper_svd,
+    quaternion_multiply,
     quaternion_to_matrix,
     random_rotations,
+    rotation_about_axis,
+    rotation_group,
     rotvec_to_matrix,
 )
 
@@ -368,3 +376,90 @@ def test_rotvec_to_matrix_gradient_at_zero():
 def test_quaternion_to_matrix_rejects_integer_tensors():
     with pytest.raises(ValueError, match="floating point"):
         quaternion_to_matrix(torch.tensor([1, 0, 0, 0]), order="wxyz")
+
+
+# ---------------------------------------------------------------------------------- the rest of the catalogue
+@pytest.mark.parametrize("axis", ["x", "y", "z"])
+def test_rotation_about_axis_matches_scipy(axis):
+    t = torch.linspace(-7.0, 7.0, 101, dtype=torch.float64).reshape(1, 101)
+    expected = Rotation.from_euler(axis, t[0].numpy()[:, None]).as_matrix()
+    np.testing.assert_allclose(rotation_about_axis(axis, t)[0].numpy(), expected, atol=1e-15, rtol=0)
+    with pytest.raises(ValueError, match="axis"):
+        rotation_about_axis("w", t)
+
+
+def test_aet_chart_is_scipy_xyz_with_negated_angles_and_round_trips():
+    g = np.random.default_rng(3)
+    a, e, t = g.uniform(-np.pi, np.pi, (3, 200))
+    e = e / 2  # cos e >= 0: the preimage matrix_to_aet_biternions returns
+    R = aet_to_matrix(*(torch.as_tensor(x) for x in (a, e, t)))
+    expected = Rotation.from_euler("XYZ", np.stack([-t, -e, -a], 1)).as_matrix()
+    np.testing.assert_allclose(R.numpy(), expected, atol=1e-14, rtol=0)
+    ba, be, bt = matrix_to_aet_biternions(R)
+    for b, x in ((ba, a), (be, e), (bt, t)):
+        np.testing.assert_allclose(b.numpy(), np.stack([np.cos(x), np.sin(x)], 1), atol=1e-12, rtol=0)
+    torch.testing.assert_close(aet_biternions_to_matrix(ba, be, bt), R, atol=1e-14, rtol=0)
+    with pytest.raises(ValueError, match=r"azimuth \(2,\).*tilt \(3,\)"):
+        aet_to_matrix(torch.zeros(2), torch.zeros(1), torch.zeros(3))
+    with pytest.raises(ValueError, match=r"\(\.\.\., 2\), got \(3,\)"):
+        aet_biternions_to_matrix(torch.zeros(3), torch.zeros(2), torch.zeros(2))
+
+
+@pytest.mark.parametrize("order", ["wxyz", "xyzw"])
+def test_matrix_to_quaternion_matches_scipy_and_round_trips(order):
+    R = haar_rotations(300, seed=21)
+    q = matrix_to_quaternion(R, order)
+    ref = Rotation.from_matrix(R.numpy()).as_quat()  # xyzw
+    ref = ref * np.where(ref[:, 3:] < 0, -1.0, 1.0)  # w >= 0
+    np.testing.assert_allclose(q.numpy(), ref if order == "xyzw" else ref[:, [3, 0, 1, 2]], atol=1e-12, rtol=0)
+    torch.testing.assert_close(quaternion_to_matrix(q, order), R, atol=1e-12, rtol=0)
+    with pytest.raises(ValueError, match="order"):
+        matrix_to_quaternion(R, "wzyx")
+    with pytest.raises(ValueError, match=r"\(\.\.\., 3, 3\), got \(4, 4\)"):
+        matrix_to_quaternion(torch.eye(4), order)
+
+
+def test_quaternion_multiply_composes_rotations():
+    p, q = (torch.as_tensor(Rotation.random(50, random_state=s).as_quat()[:, [3, 0, 1, 2]]) for s in (1, 2))
+    R = quaternion_to_matrix(quaternion_multiply(p, q), "wxyz")
+    torch.testing.assert_close(R, quaternion_to_matrix(p, "wxyz") @ quaternion_to_matrix(q, "wxyz"))
+    with pytest.raises(ValueError, match=r"p \(50, 4\), q \(3, 4\)"):
+        quaternion_multiply(p, q[:3])
+
+
+def test_proper_svd_has_rotation_factors_and_signed_last_value():
+    M = torch.randn(100, 3, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
+    U, s, V = proper_svd(M)
+    assert_is_rotation(U)
+    assert_is_rotation(V)
+    torch.testing.assert_close(U @ torch.diag_embed(s) @ V.transpose(-1, -2), M)
+    assert ((s[:, 0] >= s[:, 1]) & (s[:, 1] >= s[:, 2].abs())).all()
+    assert torch.equal(s[:, 2] < 0, torch.linalg.det(M) < 0)
+    torch.testing.assert_close(project_to_so3(M), U @ V.transpose(-1, -2))
+    with pytest.raises(ValueError, match=r"\(3, 2\)"):
+        proper_svd(torch.zeros(3, 2))
+
+
+@pytest.mark.parametrize("name", ["T", "O", "I", "C4", "D3"])
+def test_rotation_group_is_scipys_group_identity_first(name):
+    scipy_group = Rotation.create_group(name).as_matrix()
+    for sort in (False, True):
+        G = rotation_group(name, sort=sort)
+        assert G.dtype == torch.float64 and G.shape == scipy_group.shape
+        assert torch.equal(G[0], torch.eye(3, dtype=torch.float64))
+        # the same elements as scipy's, each once
+        diff = (G[:, None].numpy() - scipy_group[None]).reshape(len(G), len(G), 9)
+        match = np.abs(diff).max(-1) < 1e-9
+        assert (match.sum(0) == 1).all() and (match.sum(1) == 1).all()
+        order = np.argmax(match, axis=1)[1:]  # where each non-identity element sits in scipy's order
+        if sort:
+            keys = [tuple(np.round(g, 9).ravel()) for g in G[1:].numpy()]
+            assert keys == sorted(keys)
+        else:
+            assert (np.diff(order) > 0).all()
+    if name in ("T", "O"):
+        assert torch.equal(G, G.round())  # snapped to exact 0 and +-1
+    G[0, 0, 0] = 5.0  # a fresh tensor each call
+    assert rotation_group(name)[0, 0, 0] == 1.0
+    with pytest.raises(ValueError, match="'X'"):
+        rotation_group("X")

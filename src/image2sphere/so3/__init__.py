@@ -1,4 +1,4 @@
-"""Rotation math, HEALPix grids on S2 and SO(3), Wigner layouts and SO(3) distributions.
+"""Rotation math, finite rotation groups, HEALPix grids on S2 and SO(3), Wigner layouts and SO(3) distributions.
 
 Conventions are fixed project-wide (see ``docs/conventions.md`` and each module's docstring):
 column-vector rotation matrices, e3nn YXY Euler angles, the flat Wigner layout for SO(3) signals,
@@ -24,15 +24,26 @@ from image2sphere.so3.grid import (
     so3_tube_grid,
 )
 from image2sphere.so3.grid_eval import HealpixGridEvaluator, check_streamed_level, dense_grid_logits, get_grid_evaluator
+from image2sphere.so3.groups import rotation_group
 from image2sphere.so3.rotations import (
+    aet_biternions_to_matrix,
+    aet_to_matrix,
     angles_to_matrix,
     check_rotation_matrix,
     geodesic_distance,
     geodesic_distance_deg,
+    matrix_to_aet_biternions,
     matrix_to_angles,
+    matrix_to_quaternion,
+    matrix_to_quaternion_outer,
     project_to_so3,
+    proper_singular_values,
+    proper_svd,
+    quaternion_multiply,
     quaternion_to_matrix,
     random_rotations,
+    rotation_6d_to_matrix,
+    rotation_about_axis,
     rotvec_to_matrix,
 )
 from image2sphere.so3.wigner import (
@@ -56,6 +67,8 @@ __all__ = [
     "MAX_STREAMED_LEVEL",
     "HealpixGridEvaluator",
     "SO3Distribution",
+    "aet_biternions_to_matrix",
+    "aet_to_matrix",
     "angles_to_matrix",
     "check_grid_index",
     "check_level",
@@ -72,13 +85,22 @@ __all__ = [
     "get_grid_evaluator",
     "left_translate_so3_coeffs",
     "lmax_from_n_so3_coeffs",
+    "matrix_to_aet_biternions",
     "matrix_to_angles",
+    "matrix_to_quaternion",
+    "matrix_to_quaternion_outer",
     "n_s2_coeffs",
     "n_so3_coeffs",
     "project_to_so3",
+    "proper_singular_values",
+    "proper_svd",
+    "quaternion_multiply",
     "quaternion_to_matrix",
     "random_rotations",
     "rotate_s2_coeffs",
+    "rotation_6d_to_matrix",
+    "rotation_about_axis",
+    "rotation_group",
     "rotvec_to_matrix",
     "s2_healpix_grid",
     "so3_blocks",

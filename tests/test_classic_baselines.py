@@ -24,11 +24,16 @@ from image2sphere.distributions.euler_bins import (
     euler_bin_index,
     euler_bins_nll,
 )
-from image2sphere.distributions.von_mises import euler_to_matrix, matrix_to_euler_biternions
 from image2sphere.nn import BinDeltaRegression, EulerBinsNet, ResNetEncoder, SphericalRegression
-from image2sphere.nn.classification_regression import QUATERNION_SIGNS, matrix_to_quaternion, quaternion_sign_class
+from image2sphere.nn.classification_regression import QUATERNION_SIGNS, quaternion_sign_class
 from image2sphere.nn.regression import PerClassLinear
-from image2sphere.so3 import geodesic_distance, so3_healpix_grid
+from image2sphere.so3 import (
+    aet_to_matrix,
+    geodesic_distance,
+    matrix_to_aet_biternions,
+    matrix_to_quaternion,
+    so3_healpix_grid,
+)
 
 D = torch.float64
 PI2 = math.pi**2
@@ -85,7 +90,7 @@ def test_density_integrates_to_one(scale):
     mid = (torch.arange(m, dtype=D) + 0.5) / m
     a, e, t = torch.meshgrid(2 * math.pi * mid, math.pi * (mid - 0.5), 2 * math.pi * mid, indexing="ij")
     weights = (e.cos() * (2 * math.pi / m) ** 2 * (math.pi / m) / 8).reshape(-1)  # Haar volume of each cell
-    nodes = euler_to_matrix(a, e, t).reshape(-1, 3, 3)
+    nodes = aet_to_matrix(a, e, t).reshape(-1, 3, 3)
     total = sum(
         (dist.exact_log_density(nodes[i : i + 65536]).exp() * weights[i : i + 65536]).sum(1)
         for i in range(0, len(nodes), 65536)
@@ -128,7 +133,7 @@ def test_mode_is_the_densest_box_centre():
     G = so3_healpix_grid(3, dtype=D).reshape(-1, 3, 3)
     assert (dist.exact_log_density(G) <= at_mode + 1e-12).all()
     # the mode is the centre of the box: half way in azimuth and tilt, half way in sin(elevation)
-    a, e, t = (torch.atan2(x[..., 1], x[..., 0]) for x in matrix_to_euler_biternions(mode))
+    a, e, t = (torch.atan2(x[..., 1], x[..., 0]) for x in matrix_to_aet_biternions(mode))
     width = 2 * math.pi / N_BINS
     assert a.item() % (2 * math.pi) == pytest.approx(5.5 * width)
     assert t.item() % (2 * math.pi) == pytest.approx(17.5 * width)
@@ -189,7 +194,7 @@ def test_euler_bins_bad_input():
 # ================================================================================== spherical regression
 def test_matrix_to_quaternion_matches_scipy_with_w_non_negative():
     R = torch.cat([haar_rotations(500, seed=11), torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=D))[None]])
-    q = matrix_to_quaternion(R)
+    q = matrix_to_quaternion(R, "wxyz")
     ref = torch.as_tensor(Rotation.from_matrix(R.numpy()).as_quat()[:, [3, 0, 1, 2]])  # xyzw -> wxyz
     ref = torch.where(ref[:, :1] < 0, -ref, ref)
     assert (q[:, 0] >= 0).all()
@@ -199,7 +204,7 @@ def test_matrix_to_quaternion_matches_scipy_with_w_non_negative():
 
 
 def test_sign_classes_cover_the_eight_patterns():
-    q = matrix_to_quaternion(haar_rotations(400, seed=12))
+    q = matrix_to_quaternion(haar_rotations(400, seed=12), "wxyz")
     c = quaternion_sign_class(q)
     assert sorted(c.unique().tolist()) == list(range(8))
     torch.testing.assert_close(QUATERNION_SIGNS.to(D)[c] * q.abs(), q)
@@ -208,7 +213,7 @@ def test_sign_classes_cover_the_eight_patterns():
 def test_spherical_regression_perfect_output_has_zero_loss_and_predicts_the_rotation():
     net = SphericalRegression(ResNetEncoder(depth=18, weights=None), 32, hidden=16).double()
     R = haar_rotations(8, seed=13)
-    q = matrix_to_quaternion(R)
+    q = matrix_to_quaternion(R, "wxyz")
     signs = F.one_hot(quaternion_sign_class(q), 8).to(D)
     output = torch.cat([torch.log(q.pow(2).clamp_min(1e-300)), 40 * signs], dim=1).requires_grad_()
     predicted = net.output_distribution(output).mode()

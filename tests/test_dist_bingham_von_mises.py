@@ -19,20 +19,20 @@ from image2sphere.distributions.bingham import (
     bingham_log_normalizer,
     bingham_nll,
     bingham_params_from_output,
-    matrix_to_quaternion_outer,
     quaternion_basis_matrix,
-    quaternion_multiply,
 )
 from image2sphere.distributions.von_mises import (
     VonMisesEuler,
-    euler_to_matrix,
-    matrix_to_euler_biternions,
     von_mises_log_normalizer,
     von_mises_nll,
     von_mises_params_from_output,
 )
 from image2sphere.so3 import (
+    aet_to_matrix,
     geodesic_distance,
+    matrix_to_aet_biternions,
+    matrix_to_quaternion_outer,
+    quaternion_multiply,
     quaternion_to_matrix,
     rotvec_to_matrix,
     so3_healpix_grid,
@@ -248,14 +248,14 @@ def axis_rotation(axis: int, angle: float) -> torch.Tensor:
 def test_euler_chart():
     g = torch.Generator().manual_seed(11)
     a, e, t = (torch.rand(200, generator=g, dtype=D) * 2 * math.pi - math.pi for _ in range(3))
-    R = euler_to_matrix(a, e, t)
+    R = aet_to_matrix(a, e, t)
     for k in range(3):
         explicit = axis_rotation(0, -t[k].item()) @ axis_rotation(1, -e[k].item()) @ axis_rotation(2, -a[k].item())
         torch.testing.assert_close(R[k], explicit)
     # RenderForCNN's passive Tz(a) = Rz(-a)
     torch.testing.assert_close(axis_rotation(2, -0.3)[0, 1], torch.tensor(math.sin(0.3), dtype=D))
-    torch.testing.assert_close(euler_to_matrix(a + math.pi, math.pi - e, t + math.pi), R)  # 2:1
-    ba, be, bt = matrix_to_euler_biternions(R)
+    torch.testing.assert_close(aet_to_matrix(a + math.pi, math.pi - e, t + math.pi), R)  # 2:1
+    ba, be, bt = matrix_to_aet_biternions(R)
     sign = torch.sign(torch.cos(e))[:, None]  # the preimage with cos e >= 0
     torch.testing.assert_close(ba, sign * biternion(a))
     torch.testing.assert_close(bt, sign * biternion(t))
@@ -292,7 +292,7 @@ def test_von_mises_torus_normalisation_mixture():
     n = 48
     x = (torch.arange(n, dtype=D) + 0.5) * 2 * math.pi / n  # cos e != 0 at every node
     a, e, t = torch.meshgrid(x, x, x, indexing="ij")
-    R = euler_to_matrix(a.flatten(), e.flatten(), t.flatten())
+    R = aet_to_matrix(a.flatten(), e.flatten(), t.flatten())
     integrand = dist.exact_log_density(R).exp()[0] * e.flatten().cos().abs() / 8
     assert (integrand.sum() * (2 * math.pi / n) ** 3).item() == pytest.approx(2.0, abs=1e-9)
 
@@ -306,7 +306,7 @@ def test_von_mises_params_mode_and_peak():
     # one component with mean elevation 0: the mean rotation is the SO(3) peak
     dist = vm([20.0, 8.0, 5.0], [0.7, 0.0, -1.1])
     mode = dist.exact_mode()
-    torch.testing.assert_close(mode[0], euler_to_matrix(*torch.tensor([0.7, 0.0, -1.1], dtype=D)))
+    torch.testing.assert_close(mode[0], aet_to_matrix(*torch.tensor([0.7, 0.0, -1.1], dtype=D)))
     at_mode = dist.exact_log_density(mode[:, None])
     G = so3_healpix_grid(3, dtype=D).reshape(-1, 3, 3)
     assert (dist.exact_log_density(G) <= at_mode).all()
@@ -325,7 +325,7 @@ def test_von_mises_sampling_matches_density():
     assert worst < 5.0
     # the sampled angles of a single concentrated component have the von Mises mean resultant
     sharp = vm([50.0, 200.0, 1e4], [1.0, -0.3, 2.0])
-    a, e, t = matrix_to_euler_biternions(sharp.exact_sample(5000, generator=torch.Generator().manual_seed(2))[0])
+    a, e, t = matrix_to_aet_biternions(sharp.exact_sample(5000, generator=torch.Generator().manual_seed(2))[0])
     for b, k, m in zip((a, e, t), (50.0, 200.0, 1e4), (1.0, -0.3, 2.0), strict=True):
         resultant = (b @ biternion(m)).mean().item()
         expected = (torch.special.i1e(torch.tensor(k)) / torch.special.i0e(torch.tensor(k))).item()
@@ -335,7 +335,7 @@ def test_von_mises_sampling_matches_density():
 def test_von_mises_grid_protocol_broad():
     dist = vm([0.5, 0.8, 0.3], [0.3, 0.2, -2.0])
     R = haar_rotations(30, seed=13)
-    R = R[matrix_to_euler_biternions(R)[1][:, 0] > 0.5]  # away from gimbal lock (density ~ 1 / |cos e|)
+    R = R[matrix_to_aet_biternions(R)[1][:, 0] > 0.5]  # away from gimbal lock (density ~ 1 / |cos e|)
     assert len(R) > 15
     torch.testing.assert_close(dist.log_density(R, level=3), dist.exact_log_density(R), atol=0.1, rtol=0)
 
@@ -349,8 +349,8 @@ def test_von_mises_gradients_finite_float32():
     x.requires_grad_(True)
     R = torch.stack(
         [
-            euler_to_matrix(*torch.tensor([0.0, 0.0, math.pi / 2])),  # at the mean of a kappa = 1e4 component
-            euler_to_matrix(*torch.tensor([0.2, math.pi / 2, 0.1])),  # gimbal lock
+            aet_to_matrix(*torch.tensor([0.0, 0.0, math.pi / 2])),  # at the mean of a kappa = 1e4 component
+            aet_to_matrix(*torch.tensor([0.2, math.pi / 2, 0.1])),  # gimbal lock
             haar_rotations(1, seed=14, dtype=torch.float32)[0],
         ]
     ).float()

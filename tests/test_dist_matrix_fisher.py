@@ -19,14 +19,19 @@ from image2sphere.distributions.matrix_fisher import (
     MatrixFisher,
     log_scaled_fisher_normalizer,
     matrix_fisher_nll,
-    proper_singular_values,
 )
 from image2sphere.distributions.rotation_laplace import (
     RotationLaplace,
     rotation_laplace_log_normalizer,
     rotation_laplace_nll,
 )
-from image2sphere.so3 import geodesic_distance, project_to_so3, rotvec_to_matrix, so3_healpix_grid
+from image2sphere.so3 import (
+    geodesic_distance,
+    project_to_so3,
+    proper_singular_values,
+    rotvec_to_matrix,
+    so3_healpix_grid,
+)
 
 LOG_PI2 = 2 * math.log(math.pi)
 FAMILIES = {"fisher": MatrixFisher, "laplace": RotationLaplace}

@@ -6,9 +6,10 @@ loss" (one component) and Deng et al. 2022, "Deep Bingham networks" (a mixture).
 Conventions
 -----------
 * Rotations ``(..., 3, 3)``, ``x_camera = R @ x_object``; quaternions ``q = (w, x, y, z)`` (scalar
-  first, :func:`image2sphere.so3.quaternion_to_matrix` with ``order="wxyz"``), Hamilton product, so
-  ``R(p * q) = R(p) @ R(q)``. ``q`` and ``-q`` are the same rotation; the Bingham density is
-  antipodally symmetric, so it is a function of the rotation.
+  first, :func:`image2sphere.so3.quaternion_to_matrix` with ``order="wxyz"``), Hamilton product
+  (:func:`image2sphere.so3.quaternion_multiply`), so ``R(p * q) = R(p) @ R(q)``. ``q`` and ``-q``
+  are the same rotation; the Bingham density is antipodally symmetric, so it is a function of the
+  rotation.
 * Component ``c`` of distribution ``b``: an orthonormal ``M (4, 4)`` and concentrations
   ``z = (z1, z2, z3)`` with ``z1 <= z2 <= z3 <= 0`` (Gilitschenski's order), ``Z = diag(z1, z2, z3, 0)``,
   ``A = M Z M^T``: ``f(q) ∝ exp(q^T A q)``. The column ``M[:, 3]`` (eigenvalue 0) is the mode.
@@ -47,7 +48,12 @@ import torch
 import torch.nn.functional as F
 
 from image2sphere.distributions.base import PoseDistribution, check_num_components
-from image2sphere.so3.rotations import check_rotation_matrix, quaternion_to_matrix
+from image2sphere.so3.rotations import (
+    check_rotation_matrix,
+    matrix_to_quaternion_outer,
+    quaternion_multiply,
+    quaternion_to_matrix,
+)
 
 __all__ = [
     "PARAMS_PER_COMPONENT",
@@ -55,9 +61,7 @@ __all__ = [
     "bingham_log_normalizer",
     "bingham_nll",
     "bingham_params_from_output",
-    "matrix_to_quaternion_outer",
     "quaternion_basis_matrix",
-    "quaternion_multiply",
 ]
 
 #: raw network outputs per mixture component (see :func:`bingham_params_from_output`)
@@ -103,24 +107,6 @@ def bingham_log_normalizer(z: torch.Tensor) -> torch.Tensor:
 
 
 # ---------------------------------------------------------------------------------- quaternions
-def quaternion_multiply(p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
-    """Hamilton product ``p * q`` of ``(..., 4)`` wxyz quaternions (broadcast): ``(..., 4)``.
-
-    ``R(p * q) = R(p) @ R(q)`` for :func:`~image2sphere.so3.quaternion_to_matrix` (``"wxyz"``).
-    """
-    pw, px, py, pz = p.unbind(-1)
-    qw, qx, qy, qz = q.unbind(-1)
-    return torch.stack(
-        [
-            pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw,
-        ],
-        dim=-1,
-    )
-
-
 def quaternion_basis_matrix(q: torch.Tensor) -> torch.Tensor:
     """Orthonormal ``M (..., 4, 4)`` with columns ``(q * i, q * j, q * k, q)`` of unit ``q (..., 4)``.
 
@@ -131,26 +117,6 @@ def quaternion_basis_matrix(q: torch.Tensor) -> torch.Tensor:
     basis = torch.eye(4, dtype=q.dtype, device=q.device)  # rows 1, i, j, k
     cols = [quaternion_multiply(q, basis[i].expand_as(q)) for i in (1, 2, 3, 0)]
     return torch.stack(cols, dim=-1)
-
-
-def matrix_to_quaternion_outer(R: torch.Tensor) -> torch.Tensor:
-    """``q q^T (..., 4, 4)`` of the (wxyz) unit quaternion of each rotation ``R (..., 3, 3)``.
-
-    Linear in ``R`` (no branch, no sign ambiguity since ``q q^T = (-q)(-q)^T``), e.g.
-    ``w^2 = (1 + tr R) / 4``, ``w x = (R21 - R12) / 4``, ``x y = (R01 + R10) / 4``.
-    """
-    r = R.unbind(-1)  # columns; r[j][..., i] = R_ij
-    R00, R10, R20 = r[0].unbind(-1)
-    R01, R11, R21 = r[1].unbind(-1)
-    R02, R12, R22 = r[2].unbind(-1)
-    ww = 1 + R00 + R11 + R22
-    xx = 1 + R00 - R11 - R22
-    yy = 1 - R00 + R11 - R22
-    zz = 1 - R00 - R11 + R22
-    wx, wy, wz = R21 - R12, R02 - R20, R10 - R01
-    xy, xz, yz = R01 + R10, R02 + R20, R12 + R21
-    rows = [[ww, wx, wy, wz], [wx, xx, xy, xz], [wy, xy, yy, yz], [wz, xz, yz, zz]]
-    return torch.stack([torch.stack(row, dim=-1) for row in rows], dim=-2) / 4
 
 
 # ---------------------------------------------------------------------------------- parameters

@@ -8,9 +8,9 @@ rotation of the most likely bins.
 Conventions
 -----------
 * Rotations ``(..., 3, 3)``, ``x_camera = R @ x_object``.
-* **Euler angles** ``(a, e, t)``: the PASCAL3D+ viewpoint chart of
+* **Euler angles** ``(a, e, t)``: the PASCAL3D+ viewpoint chart (AET angles) of
   :mod:`image2sphere.distributions.von_mises`, ``R = Rx(-t) @ Ry(-e) @ Rz(-a)``
-  (:func:`~image2sphere.distributions.von_mises.euler_to_matrix`), read with ``e`` in
+  (:func:`~image2sphere.so3.rotations.aet_to_matrix`), read with ``e`` in
   ``[-pi/2, pi/2]`` (``cos e >= 0``), where every rotation has one chart point (up to the
   measure-zero circles ``e = +-pi/2``).
 * **Bins**: ``n`` equal bins per angle: azimuth and tilt over ``[0, 2 pi)`` (bin ``k`` is
@@ -39,8 +39,7 @@ import math
 import torch
 
 from image2sphere.distributions.base import PoseDistribution
-from image2sphere.distributions.von_mises import euler_to_matrix, matrix_to_euler_biternions
-from image2sphere.so3.rotations import check_rotation_matrix
+from image2sphere.so3.rotations import aet_to_matrix, check_rotation_matrix, matrix_to_aet_biternions
 
 __all__ = ["EulerBins", "check_num_bins", "elevation_bin_log_volumes", "euler_bin_index", "euler_bins_nll"]
 
@@ -66,7 +65,7 @@ def elevation_bin_log_volumes(num_bins: int, dtype: torch.dtype = torch.float64,
 def euler_bin_index(R: torch.Tensor, num_bins: int) -> torch.Tensor:
     """The box of each rotation ``R (..., 3, 3)``: bin indices ``(..., 3)`` of (azimuth, elevation, tilt)."""
     n = check_num_bins(num_bins)
-    a, e, t = matrix_to_euler_biternions(R)  # each [..., 2] (cos, sin), cos e >= 0
+    a, e, t = matrix_to_aet_biternions(R)  # each [..., 2] (cos, sin), cos e >= 0
     azimuth = torch.atan2(a[..., 1], a[..., 0]) % TWO_PI  # [0, 2 pi)
     tilt = torch.atan2(t[..., 1], t[..., 0]) % TWO_PI
     elevation = torch.atan2(e[..., 1], e[..., 0])  # [-pi/2, pi/2]
@@ -87,7 +86,7 @@ def _box_to_matrix(index: torch.Tensor, offset: torch.Tensor, num_bins: int, dty
     hi = lo + math.pi / n
     sin_e = torch.sin(lo) + off[..., 1] * (torch.sin(hi) - torch.sin(lo))
     elevation = torch.asin(sin_e.clamp(-1.0, 1.0))
-    return euler_to_matrix(azimuth, elevation, tilt).to(dtype)
+    return aet_to_matrix(azimuth, elevation, tilt).to(dtype)
 
 
 class EulerBins(PoseDistribution):

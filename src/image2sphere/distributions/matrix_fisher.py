@@ -5,9 +5,10 @@ Conventions (docs/conventions.md#densities)
 * Rotations ``(..., 3, 3)``, ``x_camera = R @ x_object``; parameter ``F (B, 3, 3)``.
 * ``p(R) = exp(tr(F^T R)) / c(F)``, a density w.r.t. the Haar measure of total volume ``pi^2`` (the
   project's convention, :mod:`image2sphere.distributions.base`); ``F = 0`` is the uniform density.
-* Proper SVD: ``F = U diag(s) V^T`` with ``det U = det V = +1`` and ``s = (s1, s2, s3)``,
-  ``s1 >= s2 >= |s3|``; ``s3 < 0`` exactly when ``det F < 0``. The mode is ``U V^T`` (the
-  special-orthogonal polar factor ``U' diag(1, 1, det(U' V'^T)) V'^T`` of any SVD ``U' S V'^T``).
+* Proper SVD (:func:`~image2sphere.so3.rotations.proper_svd`): ``F = U diag(s) V^T`` with
+  ``det U = det V = +1`` and ``s = (s1, s2, s3)``, ``s1 >= s2 >= |s3|``; ``s3 < 0`` exactly when
+  ``det F < 0``. The mode is ``U V^T`` (the special-orthogonal polar factor
+  ``U' diag(1, 1, det(U' V'^T)) V'^T`` of any SVD ``U' S V'^T``).
 
 The normaliser (the paper's 1D integral, Sec. 3 / Eq. 4, after Wood 1993 and Lee 2018)
 --------------------------------------------------------------------------------------
@@ -50,15 +51,13 @@ import torch
 
 from image2sphere.distributions.base import PoseDistribution
 from image2sphere.precision import constant_cache
-from image2sphere.so3.rotations import quaternion_to_matrix
+from image2sphere.so3.rotations import proper_singular_values, proper_svd, quaternion_to_matrix
 
 __all__ = [
     "MatrixFisher",
     "check_parameter_matrix",
     "log_scaled_fisher_normalizer",
     "matrix_fisher_nll",
-    "proper_singular_values",
-    "proper_svd",
     "sample_bingham_diag",
 ]
 
@@ -85,28 +84,6 @@ def check_parameter_matrix(M: torch.Tensor, name: str) -> torch.Tensor:
 
 def _work_dtype(device: torch.device) -> torch.dtype:
     return torch.float32 if device.type == "mps" else torch.float64
-
-
-# ---------------------------------------------------------------------------------- SVD
-def proper_svd(M: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``M (..., 3, 3) = U diag(s) V^T`` with ``U, V`` rotations ``(..., 3, 3)`` and ``s (..., 3)``,
-    ``s1 >= s2 >= |s3|`` (``s3`` carries the sign of ``det M``). Not meant to be differentiated
-    (use :func:`proper_singular_values` for ``s``)."""
-    U, s, Vh = torch.linalg.svd(M)
-    du, dv = torch.linalg.det(U), torch.linalg.det(Vh)  # [...] each +-1
-    ones = torch.ones_like(du)
-    U = U * torch.stack([ones, ones, du], dim=-1)[..., None, :]  # flip U's last column where det U < 0
-    V = Vh.transpose(-1, -2) * torch.stack([ones, ones, dv], dim=-1)[..., None, :]
-    s = torch.cat([s[..., :2], s[..., 2:] * (du * dv)[..., None]], dim=-1)
-    return U, s, V
-
-
-def proper_singular_values(M: torch.Tensor) -> torch.Tensor:
-    """Proper singular values ``(..., 3)`` of ``(..., 3, 3)`` matrices, differentiable with finite
-    gradients everywhere (``svdvals``, and the sign of ``det M`` on the last one)."""
-    s = torch.linalg.svdvals(M)  # [..., 3] descending, >= 0
-    sign = torch.where(torch.linalg.det(M.detach()) < 0, -1.0, 1.0).to(s.dtype)  # [...]
-    return torch.cat([s[..., :2], s[..., 2:] * sign[..., None]], dim=-1)
 
 
 # ---------------------------------------------------------------------------------- the normaliser

@@ -5,7 +5,7 @@ Conventions (docs/conventions.md#densities)
 -------------------------------------------
 * Rotations ``(..., 3, 3)``, ``x_camera = R @ x_object``; parameter ``A (B, 3, 3)``.
 * Proper SVD ``A = U diag(s) V^T`` (``det U = det V = +1``, ``s1 >= s2 >= |s3|``, ``s3 < 0`` iff
-  ``det A < 0``; :func:`~image2sphere.distributions.matrix_fisher.proper_svd`). With
+  ``det A < 0``; :func:`~image2sphere.so3.rotations.proper_svd`). With
   ``t(R) = tr(diag(s)) - tr(A^T R) >= 0`` (zero only at the mode ``U V^T``), the paper's density
   (its Eq. 3) is
 
@@ -63,11 +63,9 @@ from image2sphere.distributions.matrix_fisher import (
     _work_dtype,
     check_parameter_matrix,
     log_scaled_fisher_normalizer,
-    proper_singular_values,
-    proper_svd,
     sample_bingham_diag,
 )
-from image2sphere.so3.rotations import quaternion_to_matrix
+from image2sphere.so3.rotations import proper_singular_values, proper_svd, quaternion_to_matrix
 
 __all__ = ["RotationLaplace", "rotation_laplace_log_normalizer", "rotation_laplace_nll"]
 

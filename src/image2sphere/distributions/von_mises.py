@@ -11,7 +11,7 @@ Conventions
   rotation as in the PASCAL3D+ viewpoint evaluation that Prokudin et al. use (RenderForCNN's
   ``angle2dcm(r, 'ZYX') = Tx(r3) Ty(r2) Tz(r1)``, ``T`` the passive (transposed) rotations):
 
-      R(a, e, t) = Rx(-t) @ Ry(-e) @ Rz(-a)        (:func:`euler_to_matrix`)
+      R(a, e, t) = Rx(-t) @ Ry(-e) @ Rz(-a)        (:func:`~image2sphere.so3.rotations.aet_to_matrix`)
 
   with ``Rx, Ry, Rz`` the active right-handed axis rotations. These are *not* the project's e3nn
   Y-X-Y angles: the chart only fixes what "a von Mises on each angle" means and where its
@@ -50,15 +50,18 @@ import torch
 import torch.nn.functional as F
 
 from image2sphere.distributions.base import PoseDistribution, check_num_components
-from image2sphere.so3.rotations import check_rotation_matrix
+from image2sphere.so3.rotations import (
+    aet_biternions_to_matrix,
+    aet_to_matrix,
+    check_rotation_matrix,
+    matrix_to_aet_biternions,
+)
 
 __all__ = [
     "JACOBIAN_FLOOR",
     "MIN_CONCENTRATION",
     "PARAMS_PER_COMPONENT",
     "VonMisesEuler",
-    "euler_to_matrix",
-    "matrix_to_euler_biternions",
     "sample_von_mises",
     "von_mises_log_normalizer",
     "von_mises_nll",
@@ -77,45 +80,6 @@ LOG_2PI = math.log(2 * math.pi)
 def von_mises_log_normalizer(kappa: torch.Tensor) -> torch.Tensor:
     """``log(2 pi I0(kappa)) = log 2 pi + log i0e(kappa) + kappa`` elementwise (stable, ``kappa >= 0``)."""
     return LOG_2PI + torch.log(torch.special.i0e(kappa)) + kappa
-
-
-# ---------------------------------------------------------------------------------- Euler chart
-def _biternion_rotations(cos_sin: torch.Tensor, axis: int) -> torch.Tensor:
-    """Active rotations ``(..., 3, 3)`` by the angles with ``cos_sin (..., 2)`` about ``axis``."""
-    c, s = cos_sin.unbind(-1)
-    one, zero = torch.ones_like(c), torch.zeros_like(c)
-    i, j = [(1, 2), (2, 0), (0, 1)][axis]  # the rotated plane: e_i -> c e_i + s e_j
-    rows = [[None] * 3 for _ in range(3)]
-    for r in range(3):
-        for k in range(3):
-            rows[r][k] = one if (r == k == axis) else zero
-    rows[i][i], rows[j][j], rows[j][i], rows[i][j] = c, c, s, -s
-    return torch.stack([torch.stack(row, dim=-1) for row in rows], dim=-2)
-
-
-def euler_to_matrix(azimuth: torch.Tensor, elevation: torch.Tensor, tilt: torch.Tensor) -> torch.Tensor:
-    """``R = Rx(-t) Ry(-e) Rz(-a)`` ``(..., 3, 3)`` for angles ``(...)`` in radians (module docstring)."""
-    return _biternion_matrix(*(torch.stack([x.cos(), x.sin()], dim=-1) for x in (azimuth, elevation, tilt)))
-
-
-def _biternion_matrix(a: torch.Tensor, e: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-    """:func:`euler_to_matrix` from biternions ``(cos, sin)`` ``(..., 2)`` of the three angles."""
-    flip = torch.tensor([1.0, -1.0], dtype=a.dtype, device=a.device)  # (cos x, sin x) -> (cos -x, sin -x)
-    return _biternion_rotations(t * flip, 0) @ _biternion_rotations(e * flip, 1) @ _biternion_rotations(a * flip, 2)
-
-
-def matrix_to_euler_biternions(R: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Biternions ``(cos, sin)`` ``(..., 2)`` of ``(a, e, t)`` with ``cos e >= 0`` (the other preimage
-    is ``(a + pi, pi - e, t + pi)``). From ``R = Rx(-t) Ry(-e) Rz(-a)``: ``R02 = -sin e``,
-    ``(R00, R01) = cos e (cos a, sin a)``, ``(R22, R12) = cos e (cos t, sin t)``."""
-    tiny = torch.finfo(R.dtype).tiny ** 0.5
-
-    def unit(x, y):
-        v = torch.stack([x, y], dim=-1)
-        return v / torch.linalg.vector_norm(v, dim=-1, keepdim=True).clamp_min(tiny)
-
-    cos_e = torch.sqrt(R[..., 0, 0] ** 2 + R[..., 0, 1] ** 2)
-    return unit(R[..., 0, 0], R[..., 0, 1]), unit(cos_e, -R[..., 0, 2]), unit(R[..., 2, 2], R[..., 1, 2])
 
 
 # ---------------------------------------------------------------------------------- parameters
@@ -245,7 +209,7 @@ class VonMisesEuler(PoseDistribution):
         if rotations.ndim not in (3, 4) or rotations.shape[-2:] != (3, 3):
             raise ValueError(f"rotations must have shape (B, K, 3, 3) or (K, 3, 3), got {tuple(rotations.shape)}")
         R = rotations.to(self.dtype)
-        angles = torch.stack(matrix_to_euler_biternions(R), dim=-2)  # [(B,) K, 3, 2] (a, e, t)
+        angles = torch.stack(matrix_to_aet_biternions(R), dim=-2)  # [(B,) K, 3, 2] (a, e, t)
         # cos(x_i - mu_i) = cos x cos mu + sin x sin mu, per angle  [B, C, K, 3]
         if R.ndim == 3:
             cos_diff = torch.einsum("bcid,kid->bcki", self.mu, angles)
@@ -278,7 +242,7 @@ class VonMisesEuler(PoseDistribution):
 
     def component_means(self) -> torch.Tensor:
         """The rotation of each component's mean angles, ``(B, C, 3, 3)``."""
-        return _biternion_matrix(*self.mu.unbind(-2))
+        return aet_biternions_to_matrix(*self.mu.unbind(-2))
 
     def exact_mode(self) -> torch.Tensor:
         """``(B, 3, 3)``: of the component means, the one where the mixture's SO(3) density is highest.
@@ -296,7 +260,7 @@ class VonMisesEuler(PoseDistribution):
 
     def exact_sample(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
         """``n`` exact draws ``(B, n, 3, 3)``: a component per draw, the three angles from their von
-        Mises (:func:`sample_von_mises`), then :func:`euler_to_matrix`."""
+        Mises (:func:`sample_von_mises`), then :func:`~image2sphere.so3.rotations.aet_to_matrix`."""
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
             raise ValueError(f"n must be a positive integer, got {n!r}")
         B = self.batch_size
@@ -307,7 +271,7 @@ class VonMisesEuler(PoseDistribution):
             mu = self.mu.double()[idx, comp]  # [B, n, 3, 2]
             mean_angle = torch.atan2(mu[..., 1], mu[..., 0])  # [B, n, 3]
             angles = sample_von_mises(mean_angle, self.kappa[idx, comp], generator)  # [B, n, 3]
-            return euler_to_matrix(*angles.unbind(-1)).to(self.dtype)
+            return aet_to_matrix(*angles.unbind(-1)).to(self.dtype)
 
 
 def von_mises_nll(dist_or_output: VonMisesEuler | torch.Tensor, rotation: torch.Tensor, num_components: int = 1):

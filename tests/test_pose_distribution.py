@@ -16,8 +16,15 @@ from scipy.spatial.transform import Rotation as ScipyRotation
 
 import image2sphere.so3.pose_distribution as pose_distribution
 from image2sphere.distributions import DensityNotAvailable, PointEstimate, PoseDistribution
-from image2sphere.nn.regression import RotationRegression, rotation_6d_to_matrix, special_procrustes
-from image2sphere.so3 import SO3Distribution, geodesic_distance, random_rotations, so3_grid_size
+from image2sphere.nn.regression import RotationRegression
+from image2sphere.so3 import (
+    SO3Distribution,
+    geodesic_distance,
+    project_to_so3,
+    random_rotations,
+    rotation_6d_to_matrix,
+    so3_grid_size,
+)
 from image2sphere.so3.grid import so3_healpix_index_to_matrix
 
 GENERIC = PoseDistribution  # the base class's methods, called on an SO3Distribution
@@ -122,7 +129,7 @@ def test_6d_representation_is_gram_schmidt():
 def test_special_procrustes_is_the_nearest_rotation_with_a_stable_gradient():
     torch.manual_seed(0)
     M = torch.randn(50, 3, 3, dtype=torch.float64)
-    R = special_procrustes(M)
+    R = project_to_so3(M)
     torch.testing.assert_close(torch.det(R), torch.ones(50, dtype=torch.float64))
     # nearest rotation: against scipy's optimal rotation aligning the identity frame to M's columns
     for m, r in zip(M[:5], R[:5], strict=True):
@@ -131,16 +138,16 @@ def test_special_procrustes_is_the_nearest_rotation_with_a_stable_gradient():
         # and no random rotation is nearer
         Q = random_rotations(200, dtype=torch.float64)
         assert ((Q - m).pow(2).sum((-1, -2)) >= (r - m).pow(2).sum() - 1e-12).all()
-    assert torch.autograd.gradcheck(special_procrustes, (M[:4].clone().requires_grad_(),))
+    assert torch.autograd.gradcheck(project_to_so3, (M[:4].clone().requires_grad_(),))
     # the polar factor's gradient is finite where the plain SVD gradient is not: repeated singular values
     for degenerate in (torch.eye(3), 2 * random_rotations(1)[0], torch.diag(torch.tensor([1.0, 1.0, 0.5]))):
         X = degenerate.to(torch.float64)[None].clone().requires_grad_()
-        (special_procrustes(X) * torch.randn(1, 3, 3, dtype=torch.float64)).sum().backward()
+        (project_to_so3(X) * torch.randn(1, 3, 3, dtype=torch.float64)).sum().backward()
         assert torch.isfinite(X.grad).all()
     # ... and equals autograd through the SVD where that one is defined
     X1, X2 = M[:8].clone().requires_grad_(), M[:8].clone().requires_grad_()
     G = torch.randn(8, 3, 3, dtype=torch.float64)
-    (special_procrustes(X1) * G).sum().backward()
+    (project_to_so3(X1) * G).sum().backward()
     U, _, Vh = torch.linalg.svd(X2)
     D = torch.ones(8, 3, dtype=torch.float64)
     D[:, 2] = torch.det(U @ Vh).detach()

@@ -21,7 +21,8 @@
 Conventions
 -----------
 * Rotations ``(..., 3, 3)``, ``x_camera = R @ x_object``; quaternions ``(..., 4)`` in ``(w, x, y, z)``
-  order (:func:`~image2sphere.so3.rotations.quaternion_to_matrix` with ``"wxyz"``).
+  order (:func:`~image2sphere.so3.rotations.quaternion_to_matrix` and
+  :func:`~image2sphere.so3.rotations.matrix_to_quaternion` with ``"wxyz"``).
 * Both networks output one tensor per image (the layout in each class) whose distribution is a
   :class:`~image2sphere.distributions.base.PointEstimate`: no density, so the log likelihood and the
   spread are reported as not available.
@@ -38,17 +39,15 @@ import torch.nn.functional as F
 from torch import nn
 
 from image2sphere.distributions.base import PointEstimate
-from image2sphere.distributions.bingham import matrix_to_quaternion_outer
 from image2sphere.nn.base import PoseNetwork
 from image2sphere.nn.regression import PerClassLinear
 from image2sphere.so3.grid import check_level, so3_healpix_grid, so3_healpix_nearest_index
-from image2sphere.so3.rotations import geodesic_distance, quaternion_to_matrix, rotvec_to_matrix
+from image2sphere.so3.rotations import geodesic_distance, matrix_to_quaternion, quaternion_to_matrix, rotvec_to_matrix
 
 __all__ = [
     "QUATERNION_SIGNS",
     "BinDeltaRegression",
     "SphericalRegression",
-    "matrix_to_quaternion",
     "quaternion_sign_class",
 ]
 
@@ -66,20 +65,6 @@ def _check_weight(name: str, value) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0 or value == float("inf"):
         raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
     return float(value)
-
-
-def matrix_to_quaternion(R: torch.Tensor) -> torch.Tensor:
-    """Unit quaternions ``(..., 4)`` (wxyz, ``w >= 0``) of rotations ``R (..., 3, 3)``: from the outer
-    product ``q q^T``, the column of its largest diagonal entry divided by that entry's square root
-    (well conditioned for every rotation), then the sign that makes ``w >= 0``."""
-    if R.ndim < 2 or R.shape[-2:] != (3, 3):
-        raise ValueError(f"R must have shape (..., 3, 3), got {tuple(R.shape)}")
-    outer = matrix_to_quaternion_outer(R)  # [..., 4, 4]
-    k = outer.diagonal(dim1=-2, dim2=-1).argmax(dim=-1)  # [...]
-    column = outer.gather(-1, k[..., None, None].expand(*k.shape, 4, 1))[..., 0]  # [..., 4]
-    q = column / column.gather(-1, k[..., None]).clamp_min(torch.finfo(R.dtype).tiny).sqrt()
-    q = nn.functional.normalize(q, dim=-1)
-    return torch.where(q[..., :1] < 0, -q, q)
 
 
 def quaternion_sign_class(q: torch.Tensor) -> torch.Tensor:
@@ -147,7 +132,7 @@ class SphericalRegression(_ClassRegressionNet):
     def loss(self, output: torch.Tensor, rotation: torch.Tensor, grid_level: int) -> torch.Tensor:
         """``abs_weight * (1 - cos(|q|, |q_true|)) + CE(signs)`` per image ``(B,)``; ``grid_level`` is unused."""
         output = self._check_output(output, 12)
-        q = matrix_to_quaternion(rotation.to(output.dtype))  # [B, 4], w >= 0
+        q = matrix_to_quaternion(rotation.to(output.dtype), "wxyz")  # [B, 4], w >= 0
         magnitude = torch.softmax(output[:, :4], dim=1).clamp_min(torch.finfo(output.dtype).tiny).sqrt()
         cosine = (magnitude * q.abs()).sum(dim=1)  # both unit vectors
         return self.abs_weight * (1 - cosine) + F.cross_entropy(

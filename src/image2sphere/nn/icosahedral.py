@@ -16,9 +16,10 @@ Conventions
 * Rotations ``(..., 3, 3)``, ``x_camera = R @ x_object``; sphere points are unit vectors ``(n, 3)``,
   in e3nn's frame (the image faces ``+y``, :mod:`image2sphere.nn.projector`).
 * The group ``G`` (:func:`icosahedral_group`): 60 matrices ``G[g]`` ``(60, 3, 3)`` float64 from
-  ``scipy.spatial.transform.Rotation.create_group("I")``, identity first, the others in a fixed
-  (lexicographic) order. ``cayley[g, h]`` is the index of ``G[g] @ G[h]`` and ``inverse[g]`` that of
-  ``G[g]^T``, both found by nearest match, exact to ``1e-6``.
+  ``scipy.spatial.transform.Rotation.create_group("I")``
+  (:func:`~image2sphere.so3.groups.rotation_group` with ``sort=True``), identity first, the others
+  in a fixed (lexicographic) order. ``cayley[g, h]`` is the index of ``G[g] @ G[h]`` and
+  ``inverse[g]`` that of ``G[g]^T``, both found by nearest match, exact to ``1e-6``.
 * The point set ``P`` (:func:`icosahedral_points`): the 12 vertices, 20 face centres and 30 edge
   midpoints of the icosahedron (the 5-, 3- and 2-fold axes) and ``n_orbits`` generic orbits of 60
   points. ``P`` is closed under ``G``: ``action[g, p]`` (:func:`point_action`) is the index of
@@ -58,6 +59,7 @@ from image2sphere.distributions.base import PointEstimate
 from image2sphere.nn.base import PoseNetwork
 from image2sphere.nn.classification_regression import _check_positive_int, _check_weight
 from image2sphere.nn.projector import _pair, orthographic_interpolation
+from image2sphere.so3.groups import rotation_group
 from image2sphere.so3.rotations import geodesic_distance, rotvec_to_matrix
 
 __all__ = [
@@ -94,18 +96,10 @@ def _match(queries: np.ndarray, targets: np.ndarray, what: str) -> np.ndarray:
 
 
 @functools.cache
-def _group_np() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    from scipy.spatial.transform import Rotation
-
-    G = Rotation.create_group("I").as_matrix()  # [60, 3, 3]
+def _icosahedral_tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    G = rotation_group("I", sort=True).numpy()  # [60, 3, 3], identity first, then lexicographic
     if G.shape != (GROUP_ORDER, 3, 3):
         raise RuntimeError(f"scipy's icosahedral group has shape {G.shape}, expected (60, 3, 3)")
-    order = np.lexsort(np.round(G.reshape(GROUP_ORDER, 9), 9).T[::-1])  # by the first entry, then the next...
-    G = G[order]
-    identity = np.abs(G - np.eye(3)).reshape(GROUP_ORDER, 9).max(1)
-    i = int(identity.argmin())
-    assert identity[i] < MATCH_TOL, "scipy's icosahedral group has no identity"
-    G = np.concatenate([np.eye(3)[None], np.delete(G, i, axis=0)])  # the identity first, exactly
     products = np.einsum("gij,hjk->ghik", G, G).reshape(-1, 3, 3)  # [60 * 60, 3, 3]
     cayley = _match(products, G, "G[g] @ G[h]").reshape(GROUP_ORDER, GROUP_ORDER)
     inverse = _match(G.transpose(0, 2, 1), G, "G[g]^T")
@@ -129,7 +123,7 @@ class IcosahedralGroup:
 
 def icosahedral_group() -> IcosahedralGroup:
     """The icosahedral rotation group (module docstring); fresh tensors on each call."""
-    G, cayley, inverse = _group_np()
+    G, cayley, inverse = _icosahedral_tables()
     return IcosahedralGroup(
         torch.from_numpy(G.copy()), torch.from_numpy(cayley.copy()), torch.from_numpy(inverse.copy())
     )
@@ -149,7 +143,7 @@ def _unique_points(points: np.ndarray) -> np.ndarray:
 def _points_np(n_orbits: int) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
-    G, _, _ = _group_np()
+    G, _, _ = _icosahedral_tables()
     rotvec = Rotation.from_matrix(G[1:]).as_rotvec()  # [59, 3]
     angle = np.linalg.norm(rotvec, axis=1)
     axis = rotvec / angle[:, None]
@@ -187,7 +181,7 @@ def point_action(points: torch.Tensor) -> torch.Tensor:
     ``points (n, 3)``, which must be closed under the group (``AssertionError`` otherwise)."""
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must have shape (n, 3), got {tuple(points.shape)}")
-    G, _, _ = _group_np()
+    G, _, _ = _icosahedral_tables()
     P = points.detach().cpu().double().numpy()
     moved = np.einsum("gij,pj->gpi", G, P).reshape(-1, 3)  # [60 * n, 3]
     return torch.from_numpy(_match(moved, P, "G[g] @ P[p]").reshape(GROUP_ORDER, len(P)))

@@ -2,10 +2,12 @@
 
 * ``representation="6d"``: Zhou et al. 2019, "On the continuity of rotation representations in
   neural networks": two 3-vectors, orthonormalised by Gram-Schmidt into the first two columns of
-  ``R`` (the third is their cross product) (:func:`rotation_6d_to_matrix`).
+  ``R`` (the third is their cross product)
+  (:func:`~image2sphere.so3.rotations.rotation_6d_to_matrix`).
 * ``representation="9d"``: Levinson et al. 2020 / Brégier 2021, "Deep regression on manifolds: a 3D
   rotation case study": a 3x3 matrix projected onto SO(3) by the special orthogonal Procrustes
-  problem (nearest rotation in the Frobenius norm, through an SVD) (:func:`special_procrustes`).
+  problem (nearest rotation in the Frobenius norm, through an SVD)
+  (:func:`~image2sphere.so3.rotations.project_to_so3`).
 
 Conventions
 -----------
@@ -25,63 +27,12 @@ from torch import nn
 
 from image2sphere.distributions.base import PointEstimate
 from image2sphere.nn.base import PoseNetwork
-from image2sphere.so3.rotations import geodesic_distance
+from image2sphere.so3.rotations import geodesic_distance, project_to_so3, rotation_6d_to_matrix
 
-__all__ = ["PerClassLinear", "RotationRegression", "rotation_6d_to_matrix", "special_procrustes"]
+__all__ = ["PerClassLinear", "RotationRegression"]
 
 REPRESENTATIONS = {"6d": 6, "9d": 9}
 LOSSES = ("frobenius", "geodesic")
-
-
-def rotation_6d_to_matrix(x: torch.Tensor) -> torch.Tensor:
-    """Zhou et al.'s 6D representation ``(..., 6)`` -> rotation ``(..., 3, 3)``: the two 3-vectors
-    ``a = x[..., :3]``, ``b = x[..., 3:]`` are orthonormalised by Gram-Schmidt into the columns
-    ``c1 = a / |a|``, ``c2 = normalise(b - <c1, b> c1)``, ``c3 = c1 x c2``."""
-    if x.shape[-1] != 6:
-        raise ValueError(f"a 6D rotation representation must have shape (..., 6), got {tuple(x.shape)}")
-    a, b = x[..., :3], x[..., 3:]
-    c1 = nn.functional.normalize(a, dim=-1)
-    c2 = nn.functional.normalize(b - (c1 * b).sum(-1, keepdim=True) * c1, dim=-1)
-    c3 = torch.cross(c1, c2, dim=-1)
-    return torch.stack([c1, c2, c3], dim=-1)  # columns
-
-
-class _SpecialProcrustes(torch.autograd.Function):
-    """``R = U diag(1, 1, det(U V^T)) V^T`` for ``M = U S V^T``, with the gradient of the polar factor.
-
-    Writing ``M = R P`` with ``P = V L V^T`` symmetric, ``L = diag(s1, s2, d s3)``, a change ``dM``
-    moves ``R`` by ``R V w V^T`` with ``w_ij = a_ij / (l_i + l_j)`` and ``a = V^T (R^T dM - dM^T R) V``:
-    the denominators are sums of singular values, not the differences in the generic SVD gradient, so
-    the gradient stays finite when singular values coincide (e.g. ``M`` a rotation). Only
-    ``l_i + l_j = 0`` (a reflection-like ``M`` with ``s2 = s3``) is singular; it is clamped.
-    """
-
-    @staticmethod
-    def forward(ctx, M: torch.Tensor) -> torch.Tensor:
-        U, S, Vh = torch.linalg.svd(M)
-        d = torch.det(U @ Vh)  # [...]
-        D = torch.ones_like(S)
-        D[..., 2] = d
-        R = U @ (D[..., :, None] * Vh)
-        ctx.save_for_backward(R, Vh.transpose(-1, -2), S * D)
-        return R
-
-    @staticmethod
-    def backward(ctx, G: torch.Tensor) -> torch.Tensor:
-        R, V, L = ctx.saved_tensors
-        H = V.transpose(-1, -2) @ R.transpose(-1, -2) @ G @ V  # [..., 3, 3]
-        denom = L[..., :, None] + L[..., None, :]
-        eps = torch.finfo(L.dtype).eps * L.abs().amax(-1, keepdim=True)[..., None].clamp_min(1.0)
-        denom = torch.where(denom.abs() < eps, torch.where(denom < 0, -eps, eps), denom)
-        K = H / denom
-        return R @ V @ (K - K.transpose(-1, -2)) @ V.transpose(-1, -2)
-
-
-def special_procrustes(M: torch.Tensor) -> torch.Tensor:
-    """The rotation nearest ``M (..., 3, 3)`` in the Frobenius norm, with a stable gradient."""
-    if M.ndim < 2 or M.shape[-2:] != (3, 3):
-        raise ValueError(f"M must have shape (..., 3, 3), got {tuple(M.shape)}")
-    return _SpecialProcrustes.apply(M)
 
 
 class PerClassLinear(nn.Linear):
@@ -150,7 +101,7 @@ class RotationRegression(PoseNetwork):
         x = self.last(self.hidden(pooled), onehot)  # [B, d]
         if self.representation == "6d":
             return rotation_6d_to_matrix(x)
-        return special_procrustes(x.reshape(-1, 3, 3))
+        return project_to_so3(x.reshape(-1, 3, 3))
 
     def output_distribution(self, output: torch.Tensor) -> PointEstimate:
         return PointEstimate(output)

@@ -71,6 +71,7 @@ from image2sphere.data.common import (
     skip_corrupt,
     stable_seed,
 )
+from image2sphere.so3.rotations import rotation_about_axis
 
 __all__ = [
     "OBJECT_MODES",
@@ -124,22 +125,16 @@ DEFAULT_AUGMENT = {"flip": True, "box_jitter": 0.1, "roll_std_deg": 7.6}
 # --------------------------------------------------------------------------------------------------
 
 
-def _rz(t: np.ndarray) -> np.ndarray:
-    c, s, z, o = np.cos(t), np.sin(t), np.zeros_like(t), np.ones_like(t)
-    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
-
-
-def _rx(t: np.ndarray) -> np.ndarray:
-    c, s, z, o = np.cos(t), np.sin(t), np.zeros_like(t), np.ones_like(t)
-    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1), np.stack([z, s, c], -1)], -2)
-
-
 def pascal3d_rotation(azimuth, elevation, theta) -> np.ndarray:
     """``Rz(theta) @ Rx(elevation - pi/2) @ Rz(-azimuth)`` ``(..., 3, 3)`` from angles in degrees (GL frame)."""
     a, e, t = np.broadcast_arrays(*(np.radians(np.asarray(v, dtype=np.float64)) for v in (azimuth, elevation, theta)))
     if not (np.isfinite(a).all() and np.isfinite(e).all() and np.isfinite(t).all()):
         raise ValueError("azimuth, elevation and theta must be finite")
-    return _rz(t) @ _rx(e - np.pi / 2) @ _rz(-a)
+
+    def rot(axis: str, angle: np.ndarray) -> np.ndarray:  # float64 Rx / Rz of image2sphere.so3
+        return rotation_about_axis(axis, torch.from_numpy(np.array(angle, dtype=np.float64))).numpy()
+
+    return rot("z", t) @ rot("x", e - np.pi / 2) @ rot("z", -a)
 
 
 def renderforcnn_rotation(azimuth, elevation, tilt) -> np.ndarray:

@@ -80,6 +80,9 @@ from functools import cache
 import numpy as np
 import torch
 
+from image2sphere.so3.groups import rotation_group
+from image2sphere.so3.rotations import rotation_about_axis
+
 __all__ = [
     "BOUND_RADIUS",
     "MARK_DISC_COLOUR",
@@ -205,46 +208,18 @@ def check_shape_list(shapes, key: str = "shapes") -> list[str]:
 # --------------------------------------------------------------------------------------------------
 
 
-def _identity_first(G: np.ndarray) -> np.ndarray:
-    """Move the identity to index 0 (keeping the order of the others) and make it exact."""
-    dist = np.abs(G - np.eye(3)).reshape(len(G), -1).max(axis=1)
-    i = int(np.argmin(dist))
-    if dist[i] > 1e-9:
-        raise RuntimeError("group without an identity element")
-    G = np.concatenate([np.eye(3)[None], np.delete(G, i, axis=0)])
-    return G
-
-
 @cache
-def _scipy_group(name: str) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    G = Rotation.create_group(name).as_matrix()  # [G, 3, 3]
-    snapped = np.round(G)
-    if np.abs(G - snapped).max() < 1e-9:  # T and O: entries are exactly 0 and +-1
-        G = snapped + 0.0
-    return _identity_first(G)
-
-
-def _rot_y(angle: np.ndarray) -> np.ndarray:
-    """``Ry(angle)`` ``(..., 3, 3)``: ``z -> x`` for a positive angle (right-handed about +y)."""
-    c, s = np.cos(angle), np.sin(angle)
-    o, z = np.ones_like(c), np.zeros_like(c)
-    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
-
-
-@cache
-def _group_np(shape: str) -> np.ndarray:
+def _symmetry_set_np(shape: str) -> np.ndarray:
     base = {"tetX": "tet", "cylO": "cyl"}.get(shape, shape)
     if base == "tet":
-        return _scipy_group("T")
+        return rotation_group("T").numpy()
     if base == "cube":
-        return _scipy_group("O")
+        return rotation_group("O").numpy()
     if base == "icosa":
-        return _scipy_group("I")
+        return rotation_group("I").numpy()
     if base in ("cone", "cyl"):
         k = np.arange(360)
-        Ry = _rot_y(np.deg2rad(k.astype(np.float64)))
+        Ry = rotation_about_axis("y", torch.from_numpy(np.deg2rad(k.astype(np.float64)))).numpy()
         Ry[np.abs(Ry) < 1e-15] = 0.0  # exact identity and quarter turns
         if base == "cone":
             return Ry
@@ -265,7 +240,7 @@ def symmetry_group(shape: str) -> torch.Tensor:
     sphereX 577 (identity + SO(3) HEALPix level 1). For marked shapes the mark breaks these
     symmetries; :func:`equivalent_rotations` applies the SYMSOL II rule.
     """
-    return torch.from_numpy(_group_np(check_shape(shape)).copy())
+    return torch.from_numpy(_symmetry_set_np(check_shape(shape)).copy())
 
 
 # --------------------------------------------------------------------------------------------------
@@ -280,17 +255,17 @@ def _unique_rows(x: np.ndarray, decimals: int = 9) -> np.ndarray:
 
 def _polyhedron_vertices(base: str) -> np.ndarray:
     if base == "tet":
-        G = _scipy_group("T")
+        G = rotation_group("T").numpy()
         v = _unique_rows(G @ np.array([1.0, 1.0, 1.0]))
         expected = 4
     elif base == "cube":
-        G = _scipy_group("O")
+        G = rotation_group("O").numpy()
         v = _unique_rows(G @ np.array([1.0, 1.0, 1.0]))
         expected = 8
     else:
         from scipy.spatial.transform import Rotation
 
-        G = _scipy_group("I")
+        G = rotation_group("I").numpy()
         rotvec = Rotation.from_matrix(G).as_rotvec()  # [60, 3]
         angle = np.linalg.norm(rotvec, axis=1)
         five_fold = np.abs(angle - 2 * np.pi / 5) < 1e-6  # 72 deg about +-axis: 12 elements
@@ -480,7 +455,7 @@ def exact_matmul3(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
 def _equivalence_mask(shape: str, rotations: torch.Tensor) -> torch.Tensor:
     """``(N, G)`` bool: which ``R_n @ S_g`` belong to the equivalent set of ``R_n`` (column 0 always)."""
     geom = shape_geometry(shape)
-    G = _group_np(shape)
+    G = _symmetry_set_np(shape)
     n = rotations.shape[0]
     if not geom.marks:
         return torch.ones(n, len(G), dtype=torch.bool)
@@ -515,7 +490,7 @@ def equivalent_rotation_sets(
         raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}")
     _check_rotations(rotations)
     dtype = dtype or rotations.dtype
-    group = torch.from_numpy(_group_np(shape))
+    group = torch.from_numpy(_symmetry_set_np(shape))
     n = rotations.shape[0]
     masks = [_equivalence_mask(shape, rotations[i : i + chunk_size]) for i in range(0, n, chunk_size)]
     mask = torch.cat(masks) if masks else torch.zeros(0, len(group), dtype=torch.bool)

@@ -1,5 +1,5 @@
 """Hydra callbacks (``hydra.callbacks`` in ``conf/hydra/default.yaml``): they hook into Hydra's start of
-a run or sweep, before the task and its directory's files. The trainer's (Lightning's) callbacks are
+a run or sweep, before Hydra writes into its directory and before the task. The trainer's (Lightning's) callbacks are
 :mod:`.callbacks`."""
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import platform
 
-from image2sphere.data.common import available_cpus
+from image2sphere.data.workers import available_cpus
 
 __all__ = ["available_cpus", "cpu_model", "load_line"]
 

@@ -70,7 +70,7 @@ MAX_WORKERS = 8  # each process holds torch, Lightning, Hydra and e3nn (about 1 
 def pytest_xdist_auto_num_workers(config) -> int:
     """``-n auto`` (pyproject's addopts): one test process per CPU this process may run on (its affinity
     mask, which ``os.cpu_count()`` ignores in a container), at most ``MAX_WORKERS``."""
-    from image2sphere.data.common import available_cpus
+    from image2sphere.data.workers import available_cpus
 
     return max(1, min(available_cpus(), MAX_WORKERS))
 
@@ -82,7 +82,7 @@ def _share_the_cores() -> None:
     runs) get the same number through ``OMP_NUM_THREADS`` in ``ENV``."""
     workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     if os.environ.get("PYTEST_XDIST_WORKER") and workers > 1:
-        from image2sphere.data.common import available_cpus
+        from image2sphere.data.workers import available_cpus
 
         torch.set_num_threads(max(1, available_cpus() // workers))
 

@@ -17,14 +17,9 @@ from PIL import Image
 from torch.utils.data import DataLoader, Subset
 
 from image2sphere.data import modelnet
-from image2sphere.data.common import (
-    IMAGENET_MEAN,
-    IMAGENET_STD,
-    CorruptImageError,
-    DatasetNotFoundError,
-    collate_skipping_corrupt,
-)
+from image2sphere.data.common import IMAGENET_MEAN, IMAGENET_STD, CorruptImageError, DatasetNotFoundError
 from image2sphere.data.fixtures.modelnet10 import corrupt_modelnet10_record, write_modelnet10
+from image2sphere.data.loading import collate_skipping_corrupt
 from image2sphere.data.modelnet import (
     MODELNET10_CLASSES,
     MissingRecordError,

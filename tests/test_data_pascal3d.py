@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from image2sphere.data.augment import GL_TO_CV, MIRROR_X, box_to_virtual_camera, hflip_image, hflip_rotation, warp_image
-from image2sphere.data.common import CorruptImageError, DatasetNotFoundError, collate_skipping_corrupt
+from image2sphere.data.common import CorruptImageError, DatasetNotFoundError
 from image2sphere.data.fixtures.pascal3d import (
     DOT_COLOURS,
     OBJECT_POINTS,
@@ -20,6 +20,7 @@ from image2sphere.data.fixtures.pascal3d import (
     write_pascal3d,
     write_renderforcnn,
 )
+from image2sphere.data.loading import collate_skipping_corrupt
 from image2sphere.data.pascal3d import (
     Pascal3DDataModule,
     Pascal3DDataset,

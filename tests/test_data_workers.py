@@ -18,20 +18,14 @@ import torch
 from omegaconf import OmegaConf
 
 from image2sphere.data import common, modelnet
-from image2sphere.data.common import (
-    EpochIndex,
-    EpochShuffleSampler,
-    auto_num_workers,
-    check_num_workers,
-    init_worker,
-    local_processes,
-)
 from image2sphere.data.fixtures.modelnet10 import write_modelnet10
 from image2sphere.data.fixtures.pascal3d import write_pascal3d, write_renderforcnn
 from image2sphere.data.fixtures.symsol import write_symsol
+from image2sphere.data.loading import EpochIndex, EpochShuffleSampler
 from image2sphere.data.modelnet import ModelNet10DataModule, ModelNet10Dataset, close_lmdb_environments
 from image2sphere.data.pascal3d import Pascal3DDataModule
 from image2sphere.data.symsol import SymsolDataModule
+from image2sphere.data.workers import auto_num_workers, check_num_workers, init_worker, local_processes
 
 REPO = Path(__file__).resolve().parents[1]
 DATASETS = ("modelnet10", "pascal3d", "symsol")
@@ -266,7 +260,7 @@ def test_auto_rule():
 
 @pytest.mark.parametrize("name", DATASETS)
 def test_num_workers_auto_resolves_from_cpus_and_local_processes(roots, name, monkeypatch):
-    monkeypatch.setattr(common.os, "sched_getaffinity", lambda pid: set(range(5)), raising=False)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(5)), raising=False)
     monkeypatch.delenv("LOCAL_WORLD_SIZE", raising=False)
     for value in ("auto", None, "AUTO"):
         dm = make_datamodule(name, roots, num_workers=value)

@@ -187,7 +187,7 @@ def test_gathered_records_are_deduplicated_and_ordered_like_one_process(monkeypa
 # ------------------------------------------------------------------ the samplers' shares
 @pytest.mark.parametrize("n", [14, 15, 1])
 def test_training_shares_cover_the_epochs_permutation_and_resume_within_each_share(n):
-    from image2sphere.data.common import EpochShuffleSampler
+    from image2sphere.data.loading import EpochShuffleSampler
 
     one = EpochShuffleSampler(n, seed=3)
     one.set_epoch(2)
@@ -210,7 +210,7 @@ def test_training_shares_cover_the_epochs_permutation_and_resume_within_each_sha
 
 
 def test_evaluation_shares_score_every_image_once():
-    from image2sphere.data.common import ShardSampler
+    from image2sphere.data.loading import ShardSampler
 
     shares = [list(ShardSampler(15, 2, rank)) for rank in range(2)]
     assert sorted(shares[0] + shares[1]) == list(range(15)) and not set(shares[0]) & set(shares[1])
@@ -223,7 +223,8 @@ def test_data_module_gives_each_rank_its_share_and_lightning_keeps_our_samplers(
     from lightning.pytorch.trainer.connectors.data_connector import _DataConnector
     from torch.utils.data import DistributedSampler
 
-    from image2sphere.data.common import EpochShuffleSampler, PoseDataModule, ShardSampler
+    from image2sphere.data.datamodule import PoseDataModule
+    from image2sphere.data.loading import EpochShuffleSampler, ShardSampler
 
     module = PoseDataModule()
     module.batch_size, module.num_workers, module.pin_memory, module.seed = 4, 0, False, 0

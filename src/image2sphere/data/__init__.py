@@ -10,13 +10,8 @@ command ``python -m image2sphere.data.render``); it is imported on first use so 
 a module does not find it already imported.
 """
 
-from image2sphere.data.common import (
-    CorruptImageError,
-    DatasetNotFoundError,
-    EpochShuffleSampler,
-    load_image,
-    normalize_images,
-)
+from image2sphere.data.common import CorruptImageError, DatasetNotFoundError, load_image, normalize_images
+from image2sphere.data.loading import EpochShuffleSampler
 from image2sphere.data.modelnet import ModelNet10DataModule, ModelNet10Dataset
 from image2sphere.data.pascal3d import Pascal3DDataModule, Pascal3DDataset
 from image2sphere.data.shapes import (

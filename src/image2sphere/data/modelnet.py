@@ -42,7 +42,7 @@ channels), ``class_index`` (int64 scalar), ``index`` (int64 scalar, the row in t
 and either ``rotation (3, 3)`` float32 (training) or, for evaluation (``return_all=True``),
 ``rotations (1, 3, 3)`` with ``mask (1,)`` all True: ModelNet10-SO(3) has one label per image, in
 the same format as the multi-label evaluation of SYMSOL. With ``on_corrupt="skip"`` an image that
-does not decode gives ``None`` (dropped by :func:`~image2sphere.data.common.collate_skipping_corrupt`).
+does not decode gives ``None`` (dropped by :func:`~image2sphere.data.loading.collate_skipping_corrupt`).
 """
 
 from __future__ import annotations
@@ -61,16 +61,16 @@ from torch.utils.data import Dataset
 
 from image2sphere.data.common import (
     CorruptImageError,
-    PoseDataModule,
     VerifyReport,
     check_corrupt_policy,
     decode_image,
     load_image,
     missing_dataset_error,
-    single_label_item,
     skip_corrupt,
     stable_seed,
 )
+from image2sphere.data.datamodule import PoseDataModule
+from image2sphere.data.loading import single_label_item
 from image2sphere.data.safe_io import DatasetFileError, load_pickle, open_lmdb
 from image2sphere.so3.rotations import quaternion_to_matrix
 
@@ -397,7 +397,7 @@ class ModelNet10Dataset(Dataset):
         return state
 
     def init_worker(self) -> None:
-        """Run in a DataLoader worker when it starts (:func:`~image2sphere.data.common.init_worker`):
+        """Run in a DataLoader worker when it starts (:func:`~image2sphere.data.workers.init_worker`):
         forget the environments inherited through ``fork``; the first read opens this worker's own."""
         close_inherited_lmdb_environments()
         self._env = self._pid = None
@@ -448,7 +448,7 @@ class ModelNet10DataModule(PoseDataModule):
             with ``seed``); all their views form the validation set. 0: no validation.
         image_size: network input size; images are resized when the records differ.
         batch_size, num_workers, pin_memory: loader settings (evaluation uses the same batch size);
-            ``num_workers`` an integer or ``"auto"`` (see :class:`~image2sphere.data.common.PoseDataModule`).
+            ``num_workers`` an integer or ``"auto"`` (see :class:`~image2sphere.data.datamodule.PoseDataModule`).
         on_corrupt: ``"fail"`` or ``"skip"`` for records that do not decode.
         seed: seed of the validation split and of the shuffling.
 

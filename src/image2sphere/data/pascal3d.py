@@ -60,17 +60,15 @@ from PIL import ImageOps
 from image2sphere.data.augment import GL_TO_CV, box_to_virtual_camera, hflip_box, hflip_rotation, warp_image
 from image2sphere.data.common import (
     CorruptImageError,
-    EpochDataset,
-    EpochIndex,
-    PoseDataModule,
     VerifyReport,
     check_corrupt_policy,
     decode_image,
     missing_dataset_error,
-    single_label_item,
     skip_corrupt,
     stable_seed,
 )
+from image2sphere.data.datamodule import PoseDataModule
+from image2sphere.data.loading import EpochDataset, EpochIndex, single_label_item
 from image2sphere.so3.rotations import rotation_about_axis
 
 __all__ = [
@@ -436,7 +434,7 @@ class Pascal3DDataset(EpochDataset):
     """Warped PASCAL3D+ objects, optionally augmented and mixed with RenderForCNN images.
 
     Items, :meth:`source` and :meth:`sample` take an index ``i`` (in the epoch of the last
-    :meth:`set_epoch`) or an :class:`~image2sphere.data.common.EpochIndex` ``(epoch, i)``, what the
+    :meth:`set_epoch`) or an :class:`~image2sphere.data.loading.EpochIndex` ``(epoch, i)``, what the
     training sampler yields so that DataLoader workers follow the epoch.
 
     Args:
@@ -596,7 +594,7 @@ class Pascal3DDataModule(PoseDataModule):
         val_per_class: real training images per class held out (chosen with ``seed``) for validation.
         synthetic_focal: focal length (pixels) assumed for synthetic images.
         batch_size, num_workers, pin_memory: loader settings; ``num_workers`` an integer or ``"auto"``
-            (see :class:`~image2sphere.data.common.PoseDataModule`).
+            (see :class:`~image2sphere.data.datamodule.PoseDataModule`).
         on_corrupt: ``"fail"`` or ``"skip"`` for images that do not decode.
         seed: seed of the validation split, shuffling, augmentation and synthetic draws.
         classes: the categories used (default all 12); ``class_index`` is the position in this list.

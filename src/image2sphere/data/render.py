@@ -63,6 +63,7 @@ from image2sphere.data.shapes import (
     exact_matmul3,
     shape_geometry,
 )
+from image2sphere.data.workers import available_cpus
 from image2sphere.so3.rotations import check_rotation_matrix, random_rotations
 
 __all__ = [
@@ -551,7 +552,7 @@ def render_symsol(
     try:
         partial.mkdir()
         if png_thread is None:
-            png_thread = torch.get_num_threads() < _available_cpus()
+            png_thread = torch.get_num_threads() < available_cpus()
         pending: list[Future] = []
         # PNG encoding (zlib, GIL released) overlaps with rendering in one helper thread
         with (
@@ -604,13 +605,6 @@ def _writer_result(root: Path, counts: dict, total: int, rendered: int, seconds:
         "seconds": seconds,
         "images_per_second": speed,
     }
-
-
-def _available_cpus() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
 
 
 class _InlineExecutor:
@@ -690,7 +684,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     splits = {name: n for name, n in (("train", args.train), ("test", args.test)) if n > 0}
     if not splits:
         parser.error("--train and --test are both 0: nothing to render")
-    torch.set_num_threads(args.threads or max(1, _available_cpus() - 1))
+    torch.set_num_threads(args.threads or max(1, available_cpus() - 1))
     try:
         result = render_symsol(
             args.root,

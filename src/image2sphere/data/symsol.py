@@ -31,9 +31,6 @@ import torch
 
 from image2sphere.data.common import (
     CorruptImageError,
-    EpochDataset,
-    EpochIndex,
-    PoseDataModule,
     VerifyReport,
     check_corrupt_policy,
     load_image,
@@ -42,6 +39,8 @@ from image2sphere.data.common import (
     skip_corrupt,
     stable_seed,
 )
+from image2sphere.data.datamodule import PoseDataModule
+from image2sphere.data.loading import EpochDataset, EpochIndex
 from image2sphere.data.safe_io import DatasetFileError, load_npz, npz_keys
 from image2sphere.data.shapes import SHAPES, SYMSOL_I_SHAPES, SYMSOL_II_SHAPES, check_shape_list
 
@@ -230,7 +229,7 @@ class SymsolDataset(EpochDataset):
     """Images and rotations of some SYMSOL shapes in one split.
 
     Items take an index (in the epoch of the last :meth:`set_epoch`) or an
-    :class:`~image2sphere.data.common.EpochIndex` ``(epoch, index)``, what the training sampler
+    :class:`~image2sphere.data.loading.EpochIndex` ``(epoch, index)``, what the training sampler
     yields so that the random label choice follows the epoch in DataLoader workers too.
 
     Args:
@@ -247,7 +246,7 @@ class SymsolDataset(EpochDataset):
             by ``__getitem__``, in the DataLoader workers.
         seed: seed of the label choice.
         on_corrupt: ``"fail"`` (raise, naming the file) or ``"skip"`` (log it; the item is ``None``
-            and :func:`image2sphere.data.common.collate_skipping_corrupt` drops and counts it).
+            and :func:`image2sphere.data.loading.collate_skipping_corrupt` drops and counts it).
     """
 
     def __init__(
@@ -356,7 +355,7 @@ class SymsolDataModule(PoseDataModule):
         label: one training label per image, ``"random"`` equivalent or ``"first"``.
         image_size: network input size; images are resized when the files differ.
         batch_size, num_workers, pin_memory: loader settings (evaluation uses the same batch size);
-            ``num_workers`` an integer or ``"auto"`` (see :class:`~image2sphere.data.common.PoseDataModule`).
+            ``num_workers`` an integer or ``"auto"`` (see :class:`~image2sphere.data.datamodule.PoseDataModule`).
         cache_images: decode all images once into memory (fast for small sets; without it the
             loader workers decode them).
         seed: seed of the validation split, the shuffling and the label choice.

@@ -30,7 +30,7 @@ from hydra.utils import instantiate
 
 from image2sphere.data.common import normalize_images
 from image2sphere.data.render import render
-from image2sphere.data.shapes import symmetry_group
+from image2sphere.data.symmetry import symmetry_group
 from image2sphere.nn.projector import SpatialS2Projector
 from image2sphere.so3 import random_rotations
 from image2sphere.so3.wigner import flat_wigner, so3_blocks

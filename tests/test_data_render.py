@@ -1,4 +1,4 @@
-"""SYMSOL shapes, renderer and dataset writer (image2sphere.data.shapes / image2sphere.data.render).
+"""SYMSOL shapes, renderer and dataset writer (image2sphere.data.shapes, .symmetry and .render).
 
 Independent references: symmetry groups are checked by brute-force enumeration of the vertex-set
 symmetries (numpy only); mark visibility against dense samples of the mark's surface and against the
@@ -43,12 +43,9 @@ from image2sphere.data.shapes import (
     SPHERE_RADIUS,
     SYMSOL_I_SHAPES,
     SYMSOL_II_SHAPES,
-    equivalent_rotation_sets,
-    equivalent_rotations,
-    mark_visible,
     shape_geometry,
-    symmetry_group,
 )
+from image2sphere.data.symmetry import equivalent_rotation_sets, equivalent_rotations, mark_visible, symmetry_group
 
 render_module = importlib.import_module("image2sphere.data.render")  # the package attribute is the function
 

@@ -59,10 +59,10 @@ from image2sphere.data.shapes import (
     ShapeGeometry,
     check_shape,
     check_shape_list,
-    equivalent_rotation_sets,
     exact_matmul3,
     shape_geometry,
 )
+from image2sphere.data.symmetry import equivalent_rotation_sets
 from image2sphere.data.workers import available_cpus
 from image2sphere.so3.rotations import check_rotation_matrix, random_rotations
 
@@ -481,7 +481,7 @@ def render_symsol(
 
     ``splits`` maps split names to the number of images per shape (default: 45000 train, 5000 test,
     as published). The rotations of ``(split, shape)`` are :func:`symsol_rotations` of ``seed``, and
-    the npz holds :func:`~image2sphere.data.shapes.equivalent_rotation_sets` in float32 (NaN-padded
+    the npz holds :func:`~image2sphere.data.symmetry.equivalent_rotation_sets` in float32 (NaN-padded
     for marked shapes). Equal arguments give byte-identical files; ``batch_size`` (images per
     :func:`render` call) and ``progress`` do not change the output.
 

@@ -27,7 +27,7 @@ import time
 import torch
 
 from image2sphere.data.common import normalize_images
-from image2sphere.data.render import render
+from image2sphere.data.raycast import render
 from image2sphere.nn import I2S, ResNetEncoder
 from image2sphere.so3 import random_rotations
 

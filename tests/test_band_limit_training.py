@@ -29,7 +29,7 @@ from hydra import compose, initialize
 from hydra.utils import instantiate
 
 from image2sphere.data.common import normalize_images
-from image2sphere.data.render import render
+from image2sphere.data.raycast import render
 from image2sphere.data.symmetry import symmetry_group
 from image2sphere.nn.projector import SpatialS2Projector
 from image2sphere.so3 import random_rotations

@@ -246,8 +246,8 @@ def test_flip_twice_is_the_identity_and_matches_the_angle_rule(pascal):
 def test_flipped_symsol_rendering_is_the_rendering_at_the_flipped_rotation(shape, monkeypatch):
     """For a shape symmetric under x -> -x, the mirrored image is the shape at F R M."""
     from conftest import haar_rotations
-    from image2sphere.data import render as render_module
-    from image2sphere.data.render import cast_rays, render
+    from image2sphere.data import raycast
+    from image2sphere.data.raycast import cast_rays, render
 
     R = haar_rotations(3, seed=11)
     flipped = torch.as_tensor(hflip_rotation(R.numpy()))
@@ -260,7 +260,7 @@ def test_flipped_symsol_rendering_is_the_rendering_at_the_flipped_rotation(shape
     # the shaded image too, once the light itself is left-right symmetric (the default light comes
     # from the upper left, so its mirror image is lit from the upper right)
     n = math.sqrt(0.5**2 + 1)
-    monkeypatch.setattr(render_module, "LIGHT_DIRECTION", (0.0, 0.5 / n, 1.0 / n))
+    monkeypatch.setattr(raycast, "LIGHT_DIRECTION", (0.0, 0.5 / n, 1.0 / n))
     images = render(shape, R, image_size=48).numpy()
     images_flipped = render(shape, flipped, image_size=48).numpy()
     diff = np.abs(hflip_image(images).astype(int) - images_flipped.astype(int))

@@ -1,4 +1,4 @@
-"""SYMSOL shapes, renderer and dataset writer (image2sphere.data.shapes, .symmetry and .render).
+"""SYMSOL shapes, renderer and dataset writer (image2sphere.data.shapes, .symmetry, .raycast, .render).
 
 Independent references: symmetry groups are checked by brute-force enumeration of the vertex-set
 symmetries (numpy only); mark visibility against dense samples of the mark's surface and against the
@@ -18,18 +18,16 @@ import pytest
 import torch
 from PIL import Image
 
-from image2sphere.data.render import (
+from image2sphere.data.raycast import (
     AMBIENT,
     DIFFUSE,
     LABEL_MARK_DISC,
     LABEL_MARK_DOT,
     LIGHT_DIRECTION,
     cast_rays,
-    main,
     render,
-    render_symsol,
-    symsol_rotations,
 )
+from image2sphere.data.render import main, render_symsol, symsol_rotations
 from image2sphere.data.shapes import (
     BOUND_RADIUS,
     CONE_APEX_HEIGHT,

@@ -74,7 +74,7 @@ def test_eval_with_refinement_changes_only_the_point_estimate(trained, tmp_path)
 
 
 def test_predict_prints_modes_and_writes_the_plot_next_to_the_image(trained, tmp_path):
-    from image2sphere.data.render import render
+    from image2sphere.data.raycast import render
 
     ckpt, _, _ = trained
     image = tmp_path / "cube.png"

@@ -192,7 +192,7 @@ def checkpoints(tmp_path_factory) -> dict[str, Path]:
 @pytest.mark.slow
 @pytest.mark.parametrize("model", MODELS)
 def test_eval_predict_and_predictor_on_each_family(checkpoints, tmp_path, model):
-    from image2sphere.data.render import render
+    from image2sphere.data.raycast import render
 
     density, closed_form = FAMILIES[model]
     ckpt = checkpoints[model]

@@ -14,7 +14,7 @@ import torch
 from hydra.utils import instantiate
 
 from image2sphere.data.common import normalize_images
-from image2sphere.data.render import render
+from image2sphere.data.raycast import render
 from image2sphere.so3 import random_rotations
 from test_configs import POINT_REGRESSORS, compose_cfg, options
 

@@ -5,9 +5,9 @@ Readers of the published layouts (described in docs/datasets.md): :mod:`~image2s
 :mod:`~image2sphere.data.pascal3d` (PASCAL3D+ with RenderForCNN). ``python -m
 image2sphere.data.verify`` checks a download; :mod:`image2sphere.data.fixtures` writes tiny copies.
 
-The renderer lives in :mod:`image2sphere.data.render` (``render``, ``render_symsol``, and the
-command ``python -m image2sphere.data.render``); it is imported on first use so that running it as
-a module does not find it already imported.
+The ray caster is :mod:`image2sphere.data.raycast` (``render``); the writer of the SYMSOL layout is
+:mod:`image2sphere.data.render` (``render_symsol``, and the command ``python -m image2sphere.data.render``),
+imported on first use so that running it as a module does not find it already imported.
 """
 
 from image2sphere.data.common import CorruptImageError, DatasetNotFoundError, load_image, normalize_images

@@ -29,8 +29,8 @@ from image2sphere.data.modelnet import (
     load_modelnet10_labels,
     parse_view_id,
     quaternion_wxyz_to_matrix,
-    verify_modelnet10,
 )
+from image2sphere.data.verify import verify_modelnet10
 
 URL = "http://isis-data.science.uva.nl/shuai/datasets/ModelNet10-SO3.tar.gz"
 VIEWS = {"train_100V": 3, "train_20V": 2, "test_20V": 2}

@@ -30,8 +30,8 @@ from image2sphere.data.pascal3d import (
     pascal3d_rotation,
     read_pascal3d_annotation,
     renderforcnn_rotation,
-    verify_pascal3d,
 )
+from image2sphere.data.verify import verify_pascal3d
 
 CLASSES = ("aeroplane", "car")
 

@@ -21,7 +21,6 @@ from __future__ import annotations
 import hashlib
 import io
 import logging
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +36,6 @@ __all__ = [
     "IMAGENET_STD",
     "CorruptImageError",
     "DatasetNotFoundError",
-    "VerifyReport",
     "check_corrupt_policy",
     "decode_image",
     "image_to_uint8",
@@ -221,60 +219,6 @@ def skip_corrupt(error: CorruptImageError, policy: str, warned: set[str]) -> Non
     if error.source not in warned:
         warned.add(error.source)
         log.warning("skipping corrupt image %s (dataset.on_corrupt=skip)", error.source)
-
-
-@dataclass
-class VerifyReport:
-    """What a dataset's ``verify`` found: counts per (split, class) against the expected ones,
-    files that do not decode, and other problems (missing files, bad labels)."""
-
-    dataset: str
-    root: Path
-    counts: list[tuple[str, str, int, int | None]] = field(default_factory=list)  # split, class, found, expected
-    unreadable: list[str] = field(default_factory=list)
-    problems: list[str] = field(default_factory=list)
-    notes: list[str] = field(default_factory=list)
-
-    def count(self, split: str, name: str, found: int, expected: int | None = None) -> None:
-        self.counts.append((split, name, int(found), None if expected is None else int(expected)))
-
-    @property
-    def mismatches(self) -> list[tuple[str, str, int, int | None]]:
-        return [c for c in self.counts if c[3] is not None and c[2] != c[3]]
-
-    @property
-    def ok(self) -> bool:
-        return not (self.unreadable or self.problems or self.mismatches)
-
-    def decode_files(self, paths, desc: str, progress: bool = True) -> None:
-        """Decode every image file of ``paths`` completely (progress bar ``desc``); the ones that do
-        not decode are added to :attr:`unreadable`."""
-        from tqdm import tqdm
-
-        for path in tqdm(paths, desc=desc, disable=not progress):
-            try:
-                decode_image(path)
-            except CorruptImageError:
-                self.unreadable.append(str(path))
-
-    def format(self, max_listed: int = 20) -> str:
-        lines = [f"{self.dataset} at {self.root}"]
-        if self.counts:
-            width = max(len(f"{s}/{c}") for s, c, _, _ in self.counts)
-            lines.append(f"  {'split/class':<{width}} {'found':>8} {'expected':>9}")
-            for split, name, found, expected in self.counts:
-                flag = "" if expected is None or found == expected else "  <-- mismatch"
-                exp = "-" if expected is None else str(expected)
-                lines.append(f"  {f'{split}/{name}':<{width}} {found:>8} {exp:>9}{flag}")
-        for title, items in (("unreadable files", self.unreadable), ("problems", self.problems)):
-            if items:
-                lines.append(f"  {len(items)} {title}:")
-                lines += [f"    {item}" for item in items[:max_listed]]
-                if len(items) > max_listed:
-                    lines.append(f"    ... and {len(items) - max_listed} more")
-        lines += [f"  note: {n}" for n in self.notes]
-        lines.append("  OK" if self.ok else "  FAILED")
-        return "\n".join(lines)
 
 
 def normalize_images(images: torch.Tensor) -> torch.Tensor:

@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import logging
 import os
-from collections import Counter, defaultdict
+from collections import defaultdict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,9 +61,7 @@ from torch.utils.data import Dataset
 
 from image2sphere.data.common import (
     CorruptImageError,
-    VerifyReport,
     check_corrupt_policy,
-    decode_image,
     load_image,
     missing_dataset_error,
     skip_corrupt,
@@ -71,7 +69,7 @@ from image2sphere.data.common import (
 )
 from image2sphere.data.datamodule import PoseDataModule
 from image2sphere.data.loading import single_label_item
-from image2sphere.data.safe_io import DatasetFileError, load_pickle, open_lmdb
+from image2sphere.data.safe_io import load_pickle, open_lmdb
 from image2sphere.so3.rotations import quaternion_to_matrix
 
 __all__ = [
@@ -85,10 +83,13 @@ __all__ = [
     "MissingRecordError",
     "close_inherited_lmdb_environments",
     "close_lmdb_environments",
+    "lmdb_dir",
+    "lmdb_environment",
     "load_modelnet10_labels",
     "parse_view_id",
+    "quaternion_table",
     "quaternion_wxyz_to_matrix",
-    "verify_modelnet10",
+    "read_quaternion_dict",
 ]
 
 log = logging.getLogger(__name__)
@@ -117,7 +118,6 @@ GET_FROM = (
 )
 DOCS = "docs/datasets.md#modelnet10-so3-layout"
 REMEDY = f"re-extract ModelNet10-SO3.tar.gz (re-download it from {GET_FROM} if the archive itself is short)"
-MAX_LISTED = 5  # keys listed per problem in verify; the counts say how many there are in all
 
 
 def lmdb_dir(root: str | Path, split: str) -> Path:
@@ -153,7 +153,7 @@ def parse_view_id(key: str) -> tuple[str, str]:
 _ENVIRONMENTS: dict[str, tuple[int, lmdb.Environment]] = {}
 
 
-def _environment(path: Path) -> lmdb.Environment:
+def lmdb_environment(path: Path) -> lmdb.Environment:
     """The read-only environment at ``path`` for this process, opened on first use.
 
     ``lmdb`` refuses to open an environment twice in one process, and one inherited over ``fork``
@@ -193,7 +193,7 @@ def close_lmdb_environments() -> None:
 
 def _check_lmdb_not_empty(directory: Path) -> int:
     """The number of records of the LMDB at ``directory``; ``ValueError`` naming it when there are none."""
-    entries = int(_environment(directory).stat()["entries"])
+    entries = int(lmdb_environment(directory).stat()["entries"])
     if entries == 0:
         raise ValueError(
             f"{directory} is an empty LMDB (no records): the download or unpacking was incomplete; "
@@ -206,7 +206,7 @@ def _check_lmdb_not_empty(directory: Path) -> int:
 # Labels
 
 
-def _read_quaternion_dict(pkl: Path) -> dict[str, object]:
+def read_quaternion_dict(pkl: Path) -> dict[str, object]:
     """The raw ``viewID2quat.pkl`` dict with ``str`` keys; ``ValueError`` naming the file if unreadable
     (:class:`~image2sphere.data.safe_io.UnsafePickleError` if it asks for anything but numpy arrays and
     plain containers: nothing of it is run)."""
@@ -218,7 +218,7 @@ def _read_quaternion_dict(pkl: Path) -> dict[str, object]:
     return {(k.decode("latin1") if isinstance(k, bytes) else str(k)): v for k, v in raw.items()}
 
 
-def _quaternion_table(pkl: Path, raw: dict[str, object]) -> tuple[list[str], np.ndarray, list[str]]:
+def quaternion_table(pkl: Path, raw: dict[str, object]) -> tuple[list[str], np.ndarray, list[str]]:
     """Sorted keys, their quaternions ``(N, 4)`` normalised (NaN rows where invalid) and the problems
     found (wrong shape, NaN or inf, norm off by more than :data:`QUATERNION_NORM_TOL`), each naming the key."""
     keys = sorted(raw)
@@ -291,10 +291,10 @@ def load_modelnet10_labels(directory: str | Path) -> ModelNet10Labels:
             f"ModelNet10-SO(3) labels not found: {pkl} (expected {QUATERNION_FILE} inside every "
             f"{{split}}.Rawjpg.lmdb folder; see {DOCS})"
         )
-    raw = _read_quaternion_dict(pkl)
+    raw = read_quaternion_dict(pkl)
     if not raw:
         raise ValueError(f"{pkl} lists no views (empty dict): re-download the dataset from {GET_FROM}")
-    keys, q, problems = _quaternion_table(pkl, raw)
+    keys, q, problems = quaternion_table(pkl, raw)
     if problems:
         more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
         raise ValueError(f"{problems[0]}{more}: the file is corrupt; re-download the dataset from {GET_FROM}")
@@ -404,7 +404,7 @@ class ModelNet10Dataset(Dataset):
 
     def _record(self, key: str) -> bytes:
         if self._env is None or self._pid != os.getpid():
-            self._env = _environment(self.lmdb_dir)
+            self._env = lmdb_environment(self.lmdb_dir)
             self._pid = os.getpid()
         with self._env.begin(buffers=False) as txn:
             data = txn.get(key.encode())
@@ -549,137 +549,3 @@ class ModelNet10DataModule(PoseDataModule):
         if stage in (None, "test") and self.data_test is None:
             labels = self.labels(self.test_split)
             self.data_test = ModelNet10Dataset(split=self.test_split, return_all=True, labels=labels, **common)
-
-
-# ----------------------------------------------------------------------------------------------
-# verify
-
-
-def _listed(keys: Sequence[str], what: str, limit: int = MAX_LISTED) -> str:
-    head = ", ".join(repr(k) for k in keys[:limit])
-    more = f" ... ({len(keys)} in all)" if len(keys) > limit else ""
-    return f"{len(keys)} {what}: {head}{more}"
-
-
-def verify_modelnet10(
-    root: str | Path,
-    splits: Sequence[str] = MODELNET10_SPLITS,
-    decode: bool = True,
-    progress: bool = True,
-) -> VerifyReport:
-    """Check a ModelNet10-SO(3) download: the keys of every split's pickle against its LMDB, images
-    per class against the published counts (train: instances x 100 or 20 views; test: instances),
-    uniform views per instance, labels, and (``decode``) that every record decodes.
-
-    Problems are collected in the returned report, never raised (a missing split is a problem).
-    """
-    from tqdm.auto import tqdm
-
-    root = Path(root).expanduser()
-    report = VerifyReport(DATASET_NAME, root)
-    unknown = [s for s in splits if s not in MODELNET10_SPLITS]
-    if unknown:
-        raise ValueError(f"splits must be among {MODELNET10_SPLITS}, got {unknown}")
-    if not root.is_dir():
-        report.problems.append(
-            f"{root} does not exist: expected the unpacked ModelNet10-SO3 folder from {GET_FROM} (see {DOCS})"
-        )
-        return report
-    for split in splits:
-        directory = lmdb_dir(root, split)
-        pkl = directory / QUATERNION_FILE
-        absent = [str(p) for p in (directory / "data.mdb", pkl) if not p.is_file()]
-        if absent:
-            report.problems.append(f"split {split} is missing: {', '.join(absent)} not found")
-            continue
-        try:
-            raw = _read_quaternion_dict(pkl)
-        except ValueError as e:
-            report.problems.append(str(e))
-            continue
-        if not raw:
-            report.problems.append(f"{pkl} lists no views (empty dict)")
-        keys, _, quaternion_problems = _quaternion_table(pkl, raw)
-        if quaternion_problems:
-            report.problems.append(f"{pkl}: {len(quaternion_problems)} bad quaternions, e.g. {quaternion_problems[0]}")
-
-        # labels: classes and views per instance
-        views_of: Counter[str] = Counter()
-        class_of_instance: dict[str, str] = {}
-        bad_ids, bad_classes = [], []
-        for key in keys:
-            try:
-                cls, instance = parse_view_id(key)
-            except ValueError:
-                bad_ids.append(key)
-                continue
-            if cls not in MODELNET10_CLASSES:
-                bad_classes.append(key)
-                continue
-            views_of[instance] += 1
-            class_of_instance[instance] = cls
-        if bad_ids:
-            report.problems.append(f"{pkl}: " + _listed(bad_ids, "view ids not of the form {class}_{k}.v{j}"))
-        if bad_classes:
-            report.problems.append(f"{pkl}: " + _listed(bad_classes, "view ids of unknown classes"))
-        distribution = Counter(views_of.values())
-        if len(distribution) > 1:
-            shown = ", ".join(f"{n} instances with {v} views" for v, n in sorted(distribution.items()))
-            report.problems.append(f"{split}: views per instance are not uniform ({shown})")
-        for cls in MODELNET10_CLASSES:
-            instances = [i for i, c in class_of_instance.items() if c == cls]
-            images = sum(views_of[i] for i in instances)
-            if split in VIEWS_PER_INSTANCE:
-                report.count(split, cls, images, MODELNET10_TRAIN_INSTANCES[cls] * VIEWS_PER_INSTANCE[split])
-            else:
-                report.count(split, cls, images, None)
-                report.count(f"{split} (instances)", cls, len(instances), MODELNET10_TEST_INSTANCES[cls])
-        if split == "test_20V":
-            found = ", ".join(f"{v} views per instance for {n} instances" for v, n in sorted(distribution.items()))
-            report.notes.append(
-                "the I2S paper (appendix) says the test set has 4 views per instance, while the published folder "
-                f"is named test_20V; found {found or 'no views'} ({sum(views_of.values())} images)"
-            )
-
-        # the LMDB: its keys against the pickle's, and every record decoded
-        try:
-            env = _environment(directory)
-            entries = int(env.stat()["entries"])
-        except DatasetFileError as e:  # not an LMDB, or truncated
-            report.problems.append(str(e))
-            continue
-        except lmdb.Error as e:
-            report.problems.append(f"cannot open the LMDB {directory}: {e}")
-            continue
-        if entries == 0:
-            report.problems.append(f"{directory} is an empty LMDB (no records)")
-        lmdb_keys: list[str] = []
-        sizes: Counter[tuple[int, int]] = Counter()
-        with (
-            env.begin(buffers=False) as txn,
-            tqdm(total=entries, disable=not progress, desc=f"verifying {split}", unit="img") as bar,
-        ):
-            records = txn.cursor().iternext(keys=True, values=True) if decode else txn.cursor().iternext(values=False)
-            for record in records:
-                raw_key, value = record if decode else (record, None)
-                key = raw_key.decode("utf-8", errors="backslashreplace")
-                lmdb_keys.append(key)
-                if decode:
-                    try:
-                        sizes[decode_image(value, name=f"{directory}:{key}").size] += 1
-                    except CorruptImageError:
-                        report.unreadable.append(f"{directory}:{key}")
-                bar.update()
-        in_lmdb, in_pkl = set(lmdb_keys), set(keys)
-        missing = sorted(in_pkl - in_lmdb)
-        extra = sorted(in_lmdb - in_pkl)
-        if missing:
-            report.problems.append(f"{directory}: " + _listed(missing, f"keys listed in {QUATERNION_FILE} are missing"))
-        if extra:
-            report.problems.append(
-                f"{directory}: " + _listed(extra, f"records have no quaternion in {QUATERNION_FILE}")
-            )
-        if sizes:
-            shown = ", ".join(f"{w}x{h}: {n}" for (w, h), n in sorted(sizes.items()))
-            report.notes.append(f"{split}: image sizes {shown}")
-    return report

@@ -60,7 +60,6 @@ from PIL import ImageOps
 from image2sphere.data.augment import GL_TO_CV, box_to_virtual_camera, hflip_box, hflip_rotation, warp_image
 from image2sphere.data.common import (
     CorruptImageError,
-    VerifyReport,
     check_corrupt_policy,
     decode_image,
     missing_dataset_error,
@@ -80,15 +79,17 @@ __all__ = [
     "Pascal3DObject",
     "SyntheticView",
     "check_classes",
+    "check_pascal3d_layout",
+    "check_renderforcnn_layout",
     "drop_reason",
     "list_pascal3d_objects",
     "list_renderforcnn",
+    "list_split_images",
     "parse_renderforcnn_name",
     "pascal3d_rotation",
     "read_pascal3d_annotation",
     "renderforcnn_rotation",
     "select_objects",
-    "verify_pascal3d",
 ]
 
 log = logging.getLogger(__name__)
@@ -553,7 +554,7 @@ def _check_augment(augment: dict | None) -> dict | None:
 # --------------------------------------------------------------------------------------------------
 
 
-def _check_layout(root: Path) -> None:
+def check_pascal3d_layout(root: Path) -> None:
     needed = [root / "Images", root / "Annotations", root / "Image_sets", root / _VOC_LISTS]
     if not root.is_dir() or not all(p.is_dir() for p in needed):
         missing = [str(p.relative_to(root)) for p in needed if not p.is_dir()] if root.is_dir() else []
@@ -568,7 +569,7 @@ def _check_layout(root: Path) -> None:
         )
 
 
-def _check_synthetic_layout(root: Path) -> None:
+def check_renderforcnn_layout(root: Path) -> None:
     if not root.is_dir() or not any((root / s).is_dir() for s in RENDERFORCNN_SYNSETS.values()):
         raise missing_dataset_error(
             "RenderForCNN synthetic images",
@@ -634,10 +635,10 @@ class Pascal3DDataModule(PoseDataModule):
         self.augment = _check_augment(augment)
         self.on_corrupt = check_corrupt_policy(on_corrupt, "dataset.on_corrupt")
         self.root = Path(root)
-        _check_layout(self.root)
+        check_pascal3d_layout(self.root)
         self.synthetic_root = Path(synthetic_root) if synthetic_root is not None else None
         if self.synthetic_root is not None:
-            _check_synthetic_layout(self.synthetic_root)
+            check_renderforcnn_layout(self.synthetic_root)
         self.synthetic_ratio = float(synthetic_ratio)
         self.objects = objects
         self.image_size = int(image_size)
@@ -687,74 +688,3 @@ class Pascal3DDataModule(PoseDataModule):
                 self.data_val = Pascal3DDataset(val, return_all=True, **common)
         if stage in (None, "test") and self.data_test is None:
             self.data_test = Pascal3DDataset(self._objects("test"), return_all=True, **common)
-
-
-# --------------------------------------------------------------------------------------------------
-# verify
-# --------------------------------------------------------------------------------------------------
-
-
-def verify_pascal3d(
-    root: str | Path,
-    synthetic_root: str | Path | None = None,
-    objects: str = "first",
-    decode: bool = True,
-    decode_synthetic: bool = False,
-    progress: bool = True,
-    classes: Sequence[str] = PASCAL3D_CLASSES,
-) -> VerifyReport:
-    """Check a PASCAL3D+ download (and optionally RenderForCNN) before training.
-
-    Per split and class: images listed vs found (every ImageNet-listed image must exist), objects
-    kept by the protocol; annotations that do not parse; images that do not decode (real images
-    when ``decode``, synthetic ones too when ``decode_synthetic``).
-    """
-    root = Path(root)
-    classes = check_classes(classes)
-    report = VerifyReport("PASCAL3D+", root)
-    _check_layout(root)
-    to_decode: list[Path] = []
-    for split in ("train", "test"):
-        for cls in classes:
-            try:
-                entries = list_split_images(root, cls, split)
-            except FileNotFoundError as e:
-                report.problems.append(str(e))
-                continue
-            listed = [e for e in entries if e[2]]
-            report.count(f"{split} imagenet images", cls, sum(e[0].is_file() for e in listed), len(listed))
-            report.count(f"{split} pascal images", cls, sum(not e[2] for e in entries))
-            kept = 0
-            for image, annotation, _ in entries:
-                if not image.is_file():
-                    report.problems.append(f"missing image {image}")
-                    continue
-                to_decode.append(image)
-                try:
-                    objs = read_pascal3d_annotation(annotation)
-                except (FileNotFoundError, ValueError) as e:
-                    report.problems.append(str(e))
-                    continue
-                kept += len(select_objects(objs, cls, objects, classes)[0])
-            report.count(f"{split} objects kept", cls, kept)
-    if decode:
-        report.decode_files(to_decode, "decoding PASCAL3D+ images", progress)
-    if synthetic_root is not None:
-        synthetic_root = Path(synthetic_root)
-        _check_synthetic_layout(synthetic_root)
-        views, bad = list_renderforcnn(synthetic_root, classes)
-        report.problems += [f"not a RenderForCNN image name: {b}" for b in bad]
-        per_class = np.bincount([v.class_index for v in views], minlength=len(classes))
-        for cls, n in zip(classes, per_class, strict=True):
-            report.count("synthetic images", cls, int(n))
-            if n == 0:
-                report.problems.append(
-                    f"no RenderForCNN images for {cls} ({synthetic_root / RENDERFORCNN_SYNSETS[cls]})"
-                )
-        if decode_synthetic:
-            report.decode_files([v.path for v in views], "decoding RenderForCNN images", progress)
-    report.notes.append(
-        f"objects={objects!r}; 'pascal images' counts VOC-listed images present in Images/{{cls}}_pascal "
-        "(VOC lists name every VOC image, so no expected count)"
-    )
-    return report

@@ -31,7 +31,6 @@ import torch
 
 from image2sphere.data.common import (
     CorruptImageError,
-    VerifyReport,
     check_corrupt_policy,
     load_image,
     missing_dataset_error,
@@ -41,15 +40,14 @@ from image2sphere.data.common import (
 )
 from image2sphere.data.datamodule import PoseDataModule
 from image2sphere.data.loading import EpochDataset, EpochIndex
-from image2sphere.data.safe_io import DatasetFileError, load_npz, npz_keys
-from image2sphere.data.shapes import SHAPES, SYMSOL_I_SHAPES, SYMSOL_II_SHAPES, check_shape_list
+from image2sphere.data.safe_io import load_npz, npz_keys
+from image2sphere.data.shapes import SYMSOL_I_SHAPES, SYMSOL_II_SHAPES, check_shape_list
 
 __all__ = [
     "LABEL_MODES",
     "SymsolDataModule",
     "SymsolDataset",
     "load_symsol_rotations",
-    "verify_symsol",
 ]
 
 log = logging.getLogger(__name__)
@@ -61,8 +59,6 @@ SYMSOL_URL = (
     "https://storage.googleapis.com/gresearch/implicit-pdf/symsol_dataset.zip "
     "(linked from github.com/google-research/google-research/tree/master/implicit_pdf)"
 )
-# images per shape in the public release
-EXPECTED_PER_SHAPE = {"train": 45000, "test": 5000}
 
 
 def _shape_tuple(shapes: Sequence[str] | str, key: str) -> tuple[str, ...]:
@@ -507,44 +503,3 @@ class SymsolDataModule(PoseDataModule):
                 split="test", rows=self._rows(rotations, self.test_per_shape), return_all=True,
                 cache_images=self.cache_images, rotations=rotations, **common,
             )  # fmt: skip
-
-
-def verify_symsol(
-    root: str | Path, shapes: Sequence[str] | None = None, decode: bool = True, progress: bool = True
-) -> VerifyReport:
-    """Check a SYMSOL download: per split and shape, images in ``rotations.npz`` against the public
-    release's counts (45,000 train and 5,000 test), every listed image present (and decodable when
-    ``decode``), every equivalent rotation a finite rotation matrix (see :func:`load_symsol_rotations`).
-    Nothing in ``rotations.npz`` is unpickled except numpy arrays (a file asking for more is a problem)."""
-    root = Path(root)
-    report = VerifyReport("SYMSOL", root)
-    if not root.is_dir():
-        report.problems.append(
-            f"{root} does not exist: expected the unzipped symsol_dataset.zip from {SYMSOL_URL} (see {SYMSOL_DOCS})"
-        )
-        return report
-    for split in ("train", "test"):
-        path = root / split / "rotations.npz"
-        if not path.is_file():
-            report.problems.append(f"missing {path}")
-            continue
-        try:  # lists the keys only; nothing is unpickled
-            present = [k for k in npz_keys(path, f"re-download {SYMSOL_URL} and unzip it again") if k in SHAPES]
-        except DatasetFileError as e:
-            report.problems.append(str(e))
-            continue
-        for shape in shapes or present:
-            try:
-                _, counts = load_symsol_rotations(root / split, [shape])[shape]
-            except ValueError as e:
-                report.problems.append(str(e))
-                continue
-            report.count(split, shape, len(counts), EXPECTED_PER_SHAPE[split])
-            images = [root / split / "images" / f"{shape}_{i:05d}.png" for i in range(len(counts))]
-            missing = [p for p in images if not p.is_file()]
-            report.problems += [f"missing image {p}" for p in missing]
-            if decode:
-                present = [p for p in images if p.is_file()]
-                report.decode_files(present, f"decoding {split}/{shape}", progress)
-    report.notes.append("the paper mentions 50k training renderings per shape; the public release has 45k + 5k test")
-    return report

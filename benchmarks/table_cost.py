@@ -42,7 +42,7 @@ from omegaconf import OmegaConf  # noqa: E402
 from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
 
 from hydra_plugins.image2sphere_sweeper.table_sweeper import expand_grids  # noqa: E402
-from image2sphere.data.modelnet import MODELNET10_TRAIN_INSTANCES  # noqa: E402
+from image2sphere.data.modelnet_labels import MODELNET10_TRAIN_INSTANCES  # noqa: E402
 from image2sphere.nn.base import method_of  # noqa: E402
 from image2sphere.so3.rotations import random_rotations  # noqa: E402
 

@@ -21,11 +21,13 @@ from image2sphere.data.common import IMAGENET_MEAN, IMAGENET_STD, CorruptImageEr
 from image2sphere.data.fixtures.modelnet10 import corrupt_modelnet10_record, write_modelnet10
 from image2sphere.data.loading import collate_skipping_corrupt
 from image2sphere.data.modelnet import (
-    MODELNET10_CLASSES,
     MissingRecordError,
     ModelNet10DataModule,
     ModelNet10Dataset,
     close_lmdb_environments,
+)
+from image2sphere.data.modelnet_labels import (
+    MODELNET10_CLASSES,
     load_modelnet10_labels,
     parse_view_id,
     quaternion_wxyz_to_matrix,

@@ -30,7 +30,8 @@ import lmdb
 import numpy as np
 
 from image2sphere.data.common import CorruptImageError, DatasetNotFoundError, decode_image
-from image2sphere.data.modelnet import (
+from image2sphere.data.modelnet import lmdb_environment
+from image2sphere.data.modelnet_labels import (
     DATASET_NAME,
     DOCS,
     GET_FROM,
@@ -41,7 +42,6 @@ from image2sphere.data.modelnet import (
     QUATERNION_FILE,
     VIEWS_PER_INSTANCE,
     lmdb_dir,
-    lmdb_environment,
     parse_view_id,
     quaternion_table,
     read_quaternion_dict,

@@ -11,7 +11,8 @@ from conftest import haar_rotations
 from image2sphere.data.common import CorruptImageError, DatasetNotFoundError, normalize_images
 from image2sphere.data.fixtures.symsol import write_symsol
 from image2sphere.data.loading import EpochShuffleSampler, collate_skipping_corrupt
-from image2sphere.data.symsol import SymsolDataModule, SymsolDataset, load_symsol_rotations
+from image2sphere.data.symsol import SymsolDataModule, SymsolDataset
+from image2sphere.data.symsol_labels import load_symsol_rotations
 from image2sphere.data.verify import verify_symsol
 
 SIZE = 16

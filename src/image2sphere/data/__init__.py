@@ -16,7 +16,8 @@ from image2sphere.data.modelnet import ModelNet10DataModule, ModelNet10Dataset
 from image2sphere.data.pascal3d import Pascal3DDataModule, Pascal3DDataset
 from image2sphere.data.shapes import SHAPES, SYMSOL_I_SHAPES, SYMSOL_II_SHAPES
 from image2sphere.data.symmetry import equivalent_rotation_sets, equivalent_rotations, mark_visible, symmetry_group
-from image2sphere.data.symsol import SymsolDataModule, SymsolDataset, load_symsol_rotations
+from image2sphere.data.symsol import SymsolDataModule, SymsolDataset
+from image2sphere.data.symsol_labels import load_symsol_rotations
 
 __all__ = [
     "SHAPES",

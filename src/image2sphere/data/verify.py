@@ -59,7 +59,7 @@ from image2sphere.data.pascal3d import (
 )
 from image2sphere.data.safe_io import DatasetFileError, npz_keys
 from image2sphere.data.shapes import SHAPES
-from image2sphere.data.symsol import SYMSOL_DOCS, SYMSOL_URL, load_symsol_rotations
+from image2sphere.data.symsol_labels import SYMSOL_DOCS, SYMSOL_URL, load_symsol_rotations
 
 __all__ = ["DATASETS", "VerifyReport", "main", "verify", "verify_modelnet10", "verify_pascal3d", "verify_symsol"]
 

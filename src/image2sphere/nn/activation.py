@@ -8,6 +8,7 @@ import torch
 from e3nn.nn import SO3Activation
 from torch import nn
 
+from image2sphere.checks import check_int
 from image2sphere.precision import constant_cache
 from image2sphere.so3.wigner import check_lmax, default_dtype
 
@@ -46,11 +47,8 @@ class SO3ReLU(nn.Module):
     def __init__(self, lmax: int = 6, resolution: int | None = None):
         super().__init__()
         self.lmax = check_lmax(lmax)
-        if resolution is None:
-            resolution = self.lmax + 2
-        if isinstance(resolution, bool) or int(resolution) != resolution or resolution < 1:
-            raise ValueError(f"resolution must be an integer >= 1 or None (lmax + 2), got {resolution!r}")
-        self.resolution = int(resolution)
+        resolution = check_int("resolution", resolution, 1, allow_none=True, note=" (lmax + 2)")
+        self.resolution = self.lmax + 2 if resolution is None else resolution
         shared = _relu_on_grid(self.lmax, self.resolution, torch.get_default_dtype())
         # a module of its own around the shared constant tensors (the memo maps each buffer to itself)
         self.act = copy.deepcopy(shared, memo={id(buf): buf for buf in shared.buffers()})

@@ -33,6 +33,7 @@ from collections.abc import Callable
 import torch
 from torch import nn
 
+from image2sphere.checks import check_int
 from image2sphere.distributions.base import PoseDistribution
 from image2sphere.precision import encoder_autocast, float32_methods, float32_region, to_float32
 
@@ -76,8 +77,7 @@ class PoseNetwork(Float32Head):
 
     def __init__(self, encoder: nn.Module, image_size: int | tuple[int, int], num_classes: int = 0):
         super().__init__()
-        if isinstance(num_classes, bool) or not isinstance(num_classes, int) or num_classes < 0:
-            raise ValueError(f"num_classes must be an integer >= 0, got {num_classes!r}")
+        check_int("num_classes", num_classes, 0)
         self.encoder = encoder
         self.num_classes = num_classes
         self.image_size = image_size

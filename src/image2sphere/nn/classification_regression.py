@@ -38,6 +38,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from image2sphere.checks import check_int, check_number
 from image2sphere.distributions.base import PointEstimate
 from image2sphere.nn.base import PoseNetwork
 from image2sphere.nn.regression import PerClassLinear
@@ -53,18 +54,6 @@ __all__ = [
 
 #: the 8 sign patterns of a quaternion with ``w >= 0``: ``(1, sx, sy, sz)``, class ``c`` is row ``c``
 QUATERNION_SIGNS = torch.tensor([(1.0, *s) for s in itertools.product((-1.0, 1.0), repeat=3)])
-
-
-def _check_positive_int(name: str, value, low: int = 1) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < low:
-        raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
-    return value
-
-
-def _check_weight(name: str, value) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0 or value == float("inf"):
-        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-    return float(value)
 
 
 def quaternion_sign_class(q: torch.Tensor) -> torch.Tensor:
@@ -84,8 +73,8 @@ class _ClassRegressionNet(PoseNetwork):
 
     def __init__(self, encoder: nn.Module, image_size, hidden: int, num_classes: int, out_features: tuple[int, int]):
         super().__init__(encoder, image_size, num_classes=0)
-        _check_positive_int("hidden", hidden)
-        self.num_classes = _check_positive_int("num_classes", num_classes, low=0)  # per-class last layers
+        check_int("hidden", hidden, 1)
+        self.num_classes = check_int("num_classes", num_classes, 0)  # per-class last layers
         self.hidden_a, self.last_a = _mlp(self.feature_channels, hidden, out_features[0], num_classes)
         self.hidden_b, self.last_b = _mlp(self.feature_channels, hidden, out_features[1], num_classes)
 
@@ -117,7 +106,7 @@ class SphericalRegression(_ClassRegressionNet):
     def __init__(self, encoder: nn.Module, image_size: int | tuple[int, int] = 224, hidden: int = 996,
                  abs_weight: float = 10.0, num_classes: int = 0):  # fmt: skip
         super().__init__(encoder, image_size, hidden, num_classes, (4, len(QUATERNION_SIGNS)))
-        self.abs_weight = _check_weight("abs_weight", abs_weight)
+        self.abs_weight = check_number("abs_weight", abs_weight)
 
     def quaternion(self, output: torch.Tensor) -> torch.Tensor:
         """The predicted unit quaternions ``(B, 4)`` (``w >= 0``): ``|q|`` times the likeliest signs."""
@@ -159,7 +148,7 @@ class BinDeltaRegression(_ClassRegressionNet):
         centres = so3_healpix_grid(level)  # [K, 3, 3]
         super().__init__(encoder, image_size, hidden, num_classes, (len(centres), 3 * len(centres)))
         self.bin_level = level
-        self.delta_weight = _check_weight("delta_weight", delta_weight)
+        self.delta_weight = check_number("delta_weight", delta_weight)
         self.register_buffer("centres", centres, persistent=False)
         with torch.no_grad():  # corrections start near zero: the first predictions are the bin centres
             self.last_b.weight.mul_(0.1)

@@ -25,6 +25,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from image2sphere.checks import check_int
 from image2sphere.distributions.base import check_num_components
 from image2sphere.distributions.bingham import Bingham, bingham_nll
 from image2sphere.distributions.euler_bins import EulerBins, check_num_bins, euler_bins_nll
@@ -60,8 +61,7 @@ class ParametricHead(PoseNetwork):
         init_scale: float = 0.1,
     ):
         super().__init__(encoder, image_size, num_classes)
-        if isinstance(hidden, bool) or not isinstance(hidden, int) or hidden < 1:
-            raise ValueError(f"hidden must be a positive integer, got {hidden!r}")
+        check_int("hidden", hidden, 1)
         last = nn.Linear(hidden, out_features)
         with torch.no_grad():
             last.weight.mul_(init_scale)

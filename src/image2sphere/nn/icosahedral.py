@@ -55,10 +55,10 @@ import torch.nn.functional as F
 from e3nn import o3
 from torch import nn
 
+from image2sphere.checks import check_int, check_number
 from image2sphere.distributions.base import PointEstimate
 from image2sphere.nn.base import PoseNetwork
-from image2sphere.nn.classification_regression import _check_positive_int, _check_weight
-from image2sphere.nn.projector import _pair, orthographic_interpolation
+from image2sphere.nn.projector import check_feature_size, orthographic_interpolation
 from image2sphere.so3.groups import rotation_group
 from image2sphere.so3.rotations import geodesic_distance, rotvec_to_matrix
 
@@ -227,7 +227,7 @@ class PointSetProjector(nn.Module):
         super().__init__()
         if points.ndim != 2 or points.shape[1] != 3:
             raise ValueError(f"points must have shape (n, 3), got {tuple(points.shape)}")
-        h, w = _pair(feature_size)
+        h, w = check_feature_size(feature_size)
         alpha, beta = o3.xyz_to_angles(points.double())  # [n] each
         visible = torch.nonzero(beta < max_beta - 1e-9).flatten()  # [k]
         if len(visible) == 0:
@@ -347,12 +347,12 @@ class IcosahedralI2S(PoseNetwork):
         num_classes: int = 0,
     ):
         super().__init__(encoder, image_size, num_classes)
-        _check_positive_int("sphere_channels", sphere_channels)
-        _check_positive_int("group_channels", group_channels)
-        _check_positive_int("n_group_conv", n_group_conv, low=0)
+        check_int("sphere_channels", sphere_channels, 1)
+        check_int("group_channels", group_channels, 1)
+        check_int("n_group_conv", n_group_conv, 0)
         if rotation_loss not in ROTATION_LOSSES:
             raise ValueError(f"rotation_loss must be one of {ROTATION_LOSSES}, got {rotation_loss!r}")
-        self.residual_weight = _check_weight("residual_weight", residual_weight)
+        self.residual_weight = check_number("residual_weight", residual_weight)
         self.rotation_loss = rotation_loss
         points = icosahedral_points(n_orbits)  # [n, 3]
         self.projector = PointSetProjector(

@@ -33,6 +33,7 @@ import math
 import torch
 from torch import nn
 
+from image2sphere.checks import check_int
 from image2sphere.distributions.base import LOG_UNIFORM_DENSITY
 from image2sphere.distributions.implicit import ImplicitDistribution
 from image2sphere.nn.base import Float32Head
@@ -96,8 +97,7 @@ class IPDF(Float32Head):
         super().__init__()
         for name, value, low in (("hidden", hidden, 1), ("depth", depth, 1), ("num_fourier", num_fourier, 0),
                                  ("n_queries", n_queries, 1), ("num_classes", num_classes, 0)):  # fmt: skip
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+            check_int(name, value, low)
         if query_sampling not in QUERY_SAMPLING:
             raise ValueError(f"query_sampling must be one of {QUERY_SAMPLING}, got {query_sampling!r}")
         self.encoder = encoder

@@ -23,10 +23,11 @@ from torch import nn
 from image2sphere.so3.grid import s2_healpix_grid
 from image2sphere.so3.wigner import check_lmax, degree_scale, n_s2_coeffs
 
-__all__ = ["HarmonicS2Projector", "SpatialS2Projector", "orthographic_interpolation"]
+__all__ = ["HarmonicS2Projector", "SpatialS2Projector", "check_feature_size", "orthographic_interpolation"]
 
 
-def _pair(size) -> tuple[int, int]:
+def check_feature_size(size) -> tuple[int, int]:
+    """``(h, w)`` of a feature map size given as ``int`` or ``(h, w)``; ``ValueError`` unless both are >= 1."""
     h, w = (size, size) if isinstance(size, int) else tuple(size)
     if h < 1 or w < 1:
         raise ValueError(f"feature map size must be positive, got {size!r}")
@@ -64,7 +65,7 @@ def orthographic_interpolation(
 
     Returns ``weight [H, W, K]`` and ``inside [H, W]`` (1 for the cells that are read), float64.
     """
-    h, w = _pair(feature_size)
+    h, w = check_feature_size(feature_size)
     check_orthographic_args(coverage, sigma, taper_beta, max_beta)
     alpha, beta = torch.as_tensor(alpha, dtype=torch.float64), torch.as_tensor(beta, dtype=torch.float64)
     xyz = o3.angles_to_xyz(alpha, beta)  # [K, 3]
@@ -127,7 +128,7 @@ class SpatialS2Projector(nn.Module):
         if normalization not in ("mean", "sqrt"):
             raise ValueError(f"normalization must be 'mean' or 'sqrt', got {normalization!r}")
         self.normalization = normalization
-        h, w = _pair(feature_size)
+        h, w = check_feature_size(feature_size)
         check_orthographic_args(coverage, sigma, taper_beta, max_beta)
         alpha, beta = s2_healpix_grid(level, max_beta=max_beta, dtype=torch.float64)  # [K]
         if n_subset is not None and not 1 <= n_subset <= len(alpha):

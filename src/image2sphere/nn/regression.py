@@ -25,6 +25,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from image2sphere.checks import check_int
 from image2sphere.distributions.base import PointEstimate
 from image2sphere.nn.base import PoseNetwork
 from image2sphere.so3.rotations import geodesic_distance, project_to_so3, rotation_6d_to_matrix
@@ -85,8 +86,7 @@ class RotationRegression(PoseNetwork):
             raise ValueError(f"representation must be one of {sorted(REPRESENTATIONS)}, got {representation!r}")
         if loss not in LOSSES:
             raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
-        if isinstance(hidden, bool) or not isinstance(hidden, int) or hidden < 1:
-            raise ValueError(f"hidden must be a positive integer, got {hidden!r}")
+        check_int("hidden", hidden, 1)
         super().__init__(encoder, image_size, num_classes=0)
         self.num_classes = num_classes  # per-class output layers, not one-hot input channels
         self.representation, self.loss_kind = representation, loss

@@ -47,6 +47,7 @@ import math
 import torch
 import torch.nn.functional as F
 
+from image2sphere.checks import check_int
 from image2sphere.distributions.base import PoseDistribution, check_num_components
 from image2sphere.so3.rotations import (
     check_rotation_matrix,
@@ -258,8 +259,7 @@ class Bingham(PoseDistribution):
     def exact_sample(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
         """``n`` exact draws ``(B, n, 3, 3)``: a component per draw from the weights, then rejection
         sampling from an angular central Gaussian envelope (Kent, Ganeiber & Mardia 2013)."""
-        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            raise ValueError(f"n must be a positive integer, got {n!r}")
+        check_int("n", n, 1)
         B, dev = self.batch_size, self.device
         with torch.no_grad():
             comp = torch.multinomial(self.weights.double().cpu(), n, replacement=True, generator=generator)  # [B, n]

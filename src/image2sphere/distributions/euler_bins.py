@@ -38,6 +38,7 @@ import math
 
 import torch
 
+from image2sphere.checks import check_int
 from image2sphere.distributions.base import PoseDistribution
 from image2sphere.so3.rotations import aet_to_matrix, check_rotation_matrix, matrix_to_aet_biternions
 
@@ -48,9 +49,7 @@ TWO_PI = 2 * math.pi
 
 def check_num_bins(num_bins) -> int:
     """Bins per angle: an integer >= 1, else ``ValueError``."""
-    if isinstance(num_bins, bool) or not isinstance(num_bins, int) or num_bins < 1:
-        raise ValueError(f"num_bins must be a positive integer, got {num_bins!r}")
-    return num_bins
+    return check_int("num_bins", num_bins, 1)
 
 
 def elevation_bin_log_volumes(num_bins: int, dtype: torch.dtype = torch.float64, device=None) -> torch.Tensor:
@@ -149,8 +148,7 @@ class EulerBins(PoseDistribution):
     def exact_sample(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
         """``n`` draws ``(B, n, 3, 3)``: a bin per angle from its probabilities, then a point uniform
         (in the Haar measure) in the box."""
-        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            raise ValueError(f"n must be a positive integer, got {n!r}")
+        check_int("n", n, 1)
         with torch.no_grad():
             probs = self.log_probs.detach().double().exp().reshape(-1, self.num_bins).cpu()  # [B * 3, nb]
             index = torch.multinomial(probs, n, replacement=True, generator=generator)  # [B * 3, n]

@@ -20,6 +20,7 @@ from collections.abc import Callable
 
 import torch
 
+from image2sphere.checks import check_int
 from image2sphere.distributions.base import PoseDistribution
 
 __all__ = ["MAX_ACTIVATION_ELEMENTS", "ImplicitDistribution"]
@@ -48,8 +49,7 @@ class ImplicitDistribution(PoseDistribution):
             raise ValueError(f"features must have shape (B, F) with B >= 1, got {shape}")
         if not callable(score):
             raise ValueError(f"score must be callable, got {type(score).__name__}")
-        if isinstance(width, bool) or not isinstance(width, int) or width < 1:
-            raise ValueError(f"width must be a positive integer, got {width!r}")
+        check_int("width", width, 1)
         self.features = features
         self.score = score
         self.width = width

@@ -49,6 +49,7 @@ import math
 import numpy as np
 import torch
 
+from image2sphere.checks import check_int
 from image2sphere.distributions.base import PoseDistribution
 from image2sphere.precision import constant_cache
 from image2sphere.so3.rotations import proper_singular_values, proper_svd, quaternion_to_matrix
@@ -59,6 +60,7 @@ __all__ = [
     "log_scaled_fisher_normalizer",
     "matrix_fisher_nll",
     "sample_bingham_diag",
+    "work_dtype",
 ]
 
 LOG_HAAR_VOLUME = 2 * math.log(math.pi)  # log(pi^2)
@@ -82,7 +84,8 @@ def check_parameter_matrix(M: torch.Tensor, name: str) -> torch.Tensor:
     return M
 
 
-def _work_dtype(device: torch.device) -> torch.dtype:
+def work_dtype(device: torch.device) -> torch.dtype:
+    """The dtype of the SVDs and normalisers on ``device``: float64, float32 on ``mps`` (no float64 there)."""
     return torch.float32 if device.type == "mps" else torch.float64
 
 
@@ -148,7 +151,7 @@ def log_scaled_fisher_normalizer(s: torch.Tensor) -> torch.Tensor:
 
 def _fisher_log_normalizer(F: torch.Tensor) -> torch.Tensor:
     """Log normaliser ``(B,)`` w.r.t. the Haar measure of volume ``pi^2`` of ``exp(tr(F^T R))``."""
-    work = _work_dtype(F.device)
+    work = work_dtype(F.device)
     s = proper_singular_values(F.to(work))  # [B, 3]
     log_c = s.sum(-1) + log_scaled_fisher_normalizer(s) + LOG_HAAR_VOLUME
     return log_c.to(F.dtype)
@@ -223,15 +226,14 @@ class MatrixFisher(PoseDistribution):
 
     def exact_mode(self) -> torch.Tensor:
         """``U V^T`` from the proper SVD of ``F``: ``(B, 3, 3)``."""
-        U, _, V = proper_svd(self.F.detach().to(_work_dtype(self.device)))
+        U, _, V = proper_svd(self.F.detach().to(work_dtype(self.device)))
         return (U @ V.transpose(-1, -2)).to(self.dtype)
 
     def exact_sample(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
         """``n`` exact draws ``(B, n, 3, 3)`` (Bingham rejection sampling, module docstring)."""
-        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            raise ValueError(f"n must be a positive integer, got {n!r}")
+        check_int("n", n, 1)
         with torch.no_grad():
-            U, s, V = proper_svd(self.F.detach().to(_work_dtype(self.device)))
+            U, s, V = proper_svd(self.F.detach().to(work_dtype(self.device)))
             c = 2 * torch.stack([s[:, 1] + s[:, 2], s[:, 0] + s[:, 2], s[:, 0] + s[:, 1]], dim=-1).clamp_min(0)
             q = sample_bingham_diag(c, n, generator)  # [B, n, 4]
             R0 = quaternion_to_matrix(q, order="wxyz")  # [B, n, 3, 3]: draws of U^T R V

@@ -57,13 +57,14 @@ import math
 
 import torch
 
+from image2sphere.checks import check_int
 from image2sphere.distributions.base import PoseDistribution
 from image2sphere.distributions.matrix_fisher import (
     LOG_HAAR_VOLUME,
-    _work_dtype,
     check_parameter_matrix,
     log_scaled_fisher_normalizer,
     sample_bingham_diag,
+    work_dtype,
 )
 from image2sphere.so3.rotations import proper_singular_values, proper_svd, quaternion_to_matrix
 
@@ -120,7 +121,7 @@ class RotationLaplace(PoseDistribution):
 
     def _s_sum(self) -> torch.Tensor:
         """``s1 + s2 + s3`` ``(B,)``, differentiable."""
-        return proper_singular_values(self.A.to(_work_dtype(self.device))).sum(-1).to(self.dtype)
+        return proper_singular_values(self.A.to(work_dtype(self.device))).sum(-1).to(self.dtype)
 
     def unnormalized_log_density(self, rotations: torch.Tensor) -> torch.Tensor:
         """``-sqrt(t) - log(t)/2`` at ``(K, 3, 3)`` or ``(B, K, 3, 3)`` rotations: ``(B, K)``."""
@@ -137,20 +138,19 @@ class RotationLaplace(PoseDistribution):
 
     def exact_log_normalizer(self) -> torch.Tensor:
         """``log c(A)`` ``(B,)`` by quadrature (module docstring); differentiable."""
-        s = proper_singular_values(self.A.to(_work_dtype(self.device)))
+        s = proper_singular_values(self.A.to(work_dtype(self.device)))
         return rotation_laplace_log_normalizer(s).to(self.dtype)
 
     def exact_mode(self) -> torch.Tensor:
         """``U V^T`` from the proper SVD of ``A``: ``(B, 3, 3)``."""
-        U, _, V = proper_svd(self.A.detach().to(_work_dtype(self.device)))
+        U, _, V = proper_svd(self.A.detach().to(work_dtype(self.device)))
         return (U @ V.transpose(-1, -2)).to(self.dtype)
 
     def exact_sample(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
         """``n`` draws ``(B, n, 3, 3)`` via the matrix Fisher scale mixture (module docstring)."""
-        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            raise ValueError(f"n must be a positive integer, got {n!r}")
+        check_int("n", n, 1)
         with torch.no_grad():
-            U, s, V = proper_svd(self.A.detach().to(_work_dtype(self.device)))
+            U, s, V = proper_svd(self.A.detach().to(work_dtype(self.device)))
             terms, x = _mixture_terms(s, SAMPLE_NODES)  # [B, J]
             h = x[:, 1] - x[:, 0]  # [B]
             cell = torch.multinomial(torch.softmax(terms, dim=-1), n, replacement=True, generator=generator)

@@ -49,6 +49,7 @@ import math
 import torch
 import torch.nn.functional as F
 
+from image2sphere.checks import check_int
 from image2sphere.distributions.base import PoseDistribution, check_num_components
 from image2sphere.so3.rotations import (
     aet_biternions_to_matrix,
@@ -261,8 +262,7 @@ class VonMisesEuler(PoseDistribution):
     def exact_sample(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
         """``n`` exact draws ``(B, n, 3, 3)``: a component per draw, the three angles from their von
         Mises (:func:`sample_von_mises`), then :func:`~image2sphere.so3.rotations.aet_to_matrix`."""
-        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            raise ValueError(f"n must be a positive integer, got {n!r}")
+        check_int("n", n, 1)
         B = self.batch_size
         with torch.no_grad():
             comp = torch.multinomial(self.weights.double().cpu(), n, replacement=True, generator=generator)

@@ -30,6 +30,7 @@ from typing import NamedTuple
 
 import torch
 
+from image2sphere.checks import check_int
 from image2sphere.data.common import stable_seed
 from image2sphere.distributions.base import LOG_UNIFORM_DENSITY, PoseDistribution
 from image2sphere.precision import constant_cache
@@ -156,8 +157,7 @@ def tie_break_uniforms(seeds: Sequence[int], m: int) -> torch.Tensor:
     gets the same draws in every run, batch composition and process (the test loop seeds with the
     image's class and dataset index, :func:`stable_seed`).
     """
-    if isinstance(m, bool) or not isinstance(m, int) or m < 0:
-        raise ValueError(f"m must be an integer >= 0, got {m!r}")
+    check_int("m", m, 0)
     out = torch.empty(len(seeds), m, dtype=torch.float64)
     for i, seed in enumerate(seeds):
         generator = torch.Generator().manual_seed(stable_seed("hdr-tie-break", int(seed)))

@@ -27,6 +27,7 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from image2sphere.checks import check_int
 from image2sphere.data.common import check_num_workers
 
 __all__ = ["check_eval_config", "check_train_config", "describe_run", "resume_config"]
@@ -49,9 +50,7 @@ def _int_at_least(cfg: DictConfig, key: str, minimum: int, allow_null: bool = Fa
     value = OmegaConf.select(cfg, key)
     if value is None and (allow_null or OmegaConf.select(cfg, key, default="<absent>") == "<absent>"):
         return
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        null = " or null" if allow_null else ""
-        raise ValueError(f"{key} must be an integer >= {minimum}{null}, got {value!r}")
+    check_int(key, value, minimum, note=" or null" if allow_null else "")
 
 
 def _check_levels(cfg: DictConfig, keys: list[str]) -> None:

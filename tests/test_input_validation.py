@@ -10,6 +10,7 @@ from __future__ import annotations
 import io
 import logging
 import math
+import re
 import time
 from pathlib import Path
 
@@ -20,6 +21,7 @@ from hydra.utils import instantiate
 from matplotlib.figure import Figure
 from PIL import Image
 
+from image2sphere.checks import check_int, check_number
 from image2sphere.data import common
 from image2sphere.data.common import decode_image, image_to_uint8, load_image
 from image2sphere.inference import Predictor, predict
@@ -233,7 +235,7 @@ def test_predict_checks_its_arguments_before_loading_anything(photo, tmp_path):
         predict(missing, str(photo), threshold=2.0)
     with pytest.raises(ValueError, match=r"level=8 is too fine"):
         predict(missing, str(photo), level=8)
-    with pytest.raises(ValueError, match=r"top_k must be a positive integer"):
+    with pytest.raises(ValueError, match=r"top_k must be an integer >= 1, got 0"):
         predict(missing, str(photo), top_k=0)
     with pytest.raises(ValueError, match=r"output=.*x.foo has extension .foo: a plot is written as one of .png, .jpg"):
         predict(missing, str(photo), output=str(tmp_path / "x.foo"))
@@ -353,7 +355,7 @@ LMAX_FUNCTIONS = {
 @pytest.mark.parametrize("bad", [-1, 1.5, "2", None])
 def test_bad_band_limits_are_value_errors_naming_the_argument(name, bad):
     argument = "l" if name == "wigner_D" else "lmax"
-    with pytest.raises(ValueError, match=rf"^{argument} must be a non-negative integer, got {bad!r}"):
+    with pytest.raises(ValueError, match=rf"^{argument} must be an integer >= 0, got {bad!r}"):
         LMAX_FUNCTIONS[name](bad)
 
 
@@ -438,3 +440,34 @@ def test_numpy_integer_levels_and_the_finest_allowed_levels_are_accepted():
     index = so3_healpix_nearest_index(torch.eye(3, dtype=torch.float64)[None], 7)
     nearest = so3_healpix_index_to_matrix(index, 7, dtype=torch.float64)
     assert geodesic_distance_deg(nearest, torch.eye(3, dtype=torch.float64)).item() < 1.0
+
+
+# ------------------------------------------------------------------ image2sphere.checks
+@pytest.mark.parametrize("bad", [True, False, -1, 1.0, "1", None])
+def test_check_int_refuses_bools_non_integers_and_none_naming_the_key(bad):
+    with pytest.raises(ValueError, match=rf"^model\.n must be an integer >= 0, got {re.escape(repr(bad))}$"):
+        check_int("model.n", bad)
+
+
+def test_check_int_minimum_is_inclusive_and_none_needs_allow_none():
+    assert check_int("n", 3, 3) == 3 and check_int("n", 0) == 0
+    with pytest.raises(ValueError, match=r"^n must be an integer >= 3, got 2$"):
+        check_int("n", 2, 3)
+    assert check_int("n", None, 1, allow_none=True) is None
+    with pytest.raises(ValueError, match=r"^n must be an integer >= 1 or None \(None: all\), got 0$"):
+        check_int("n", 0, 1, allow_none=True, note=" (None: all)")
+    with pytest.raises(ValueError, match=r"^n must be an integer >= 1, got None$"):
+        check_int("n", None, 1)
+
+
+@pytest.mark.parametrize("bad", [True, -0.5, math.inf, -math.inf, math.nan, "1", None])
+def test_check_number_refuses_bools_infinities_nan_and_non_numbers_naming_the_key(bad):
+    with pytest.raises(ValueError, match=rf"^loss\.w must be a finite number >= 0, got {re.escape(repr(bad))}$"):
+        check_number("loss.w", bad)
+
+
+def test_check_number_minimum_is_inclusive_and_the_value_comes_back_as_a_float():
+    assert check_number("w", 0) == 0.0 and type(check_number("w", 2)) is float
+    assert check_number("w", 1.5, minimum=1.5) == 1.5
+    with pytest.raises(ValueError, match=r"^w must be a finite number >= 1.5, got 1.4$"):
+        check_number("w", 1.4, minimum=1.5)

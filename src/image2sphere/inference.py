@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from image2sphere.checks import check_int
 from image2sphere.data.common import image_to_uint8, load_image, normalize_images
 from image2sphere.distributions.base import PoseDistribution, check_threshold
 from image2sphere.nn.base import method_of
@@ -180,8 +181,7 @@ def predict(
     if plot_path.exists():
         raise FileExistsError(f"{plot_path} exists; choose another output=<path.png>")
     level = check_streamed_level(level)
-    if isinstance(top_k, bool) or not isinstance(top_k, int) or top_k < 1:
-        raise ValueError(f"top_k must be a positive integer, got {top_k!r}")
+    check_int("top_k", top_k, 1)
     if isinstance(radius_deg, bool) or not isinstance(radius_deg, (int, float)) or not 0 < radius_deg < 180:
         raise ValueError(f"radius_deg must be in (0, 180) degrees, got {radius_deg!r}")
     if threshold is not None:

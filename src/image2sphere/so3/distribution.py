@@ -18,6 +18,7 @@ import numbers
 import torch
 from e3nn import o3
 
+from image2sphere.checks import check_int
 from image2sphere.so3.grid import (
     MAX_DENSE_LEVEL,
     check_level,
@@ -183,8 +184,7 @@ class SO3Distribution(PoseDistribution):
         default ``lr`` is a tenth of the grid spacing), so the estimate is no longer tied to the grid.
         ``steps`` is an integer >= 0 (0: the grid argmax is returned unrefined); ``lr`` a finite number > 0.
         """
-        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 0:
-            raise ValueError(f"steps must be an integer >= 0 (0: no refinement), got {steps!r}")
+        check_int("steps", steps, 0, note=" (0: no refinement)")
         if lr is not None and (isinstance(lr, bool) or not isinstance(lr, numbers.Real) or not 0 < lr < math.inf):
             raise ValueError(f"lr must be a finite number > 0 (or None: a tenth of the grid spacing), got {lr!r}")
         ev = self._evaluator(level)
@@ -327,8 +327,7 @@ class SO3Distribution(PoseDistribution):
         Exact and streamed: a pixel is drawn from the gamma-marginal, then gamma given the pixel.
         With ``return_index`` also the flat grid indices ``(B, n)``.
         """
-        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            raise ValueError(f"n must be a positive integer, got {n!r}")
+        check_int("n", n, 1)
         ev = self._evaluator(level)
         with torch.no_grad():
             coeffs = self.coeffs.detach()

@@ -24,6 +24,7 @@ import healpy
 import numpy as np
 import torch
 
+from image2sphere.checks import check_int
 from image2sphere.so3.rotations import angles_to_matrix, check_rotation_matrix, rotvec_to_matrix
 
 __all__ = [
@@ -173,8 +174,7 @@ def so3_near_identity_grid(
     check_level(axis_level, "axis_level", max_level=MAX_DENSE_LEVEL)
     if not 0 < max_angle <= math.pi:
         raise ValueError(f"max_angle must be in (0, pi], got {max_angle!r}")
-    if isinstance(n_angles, bool) or not isinstance(n_angles, int) or n_angles < 1:
-        raise ValueError(f"n_angles must be an integer >= 1, got {n_angles!r}")
+    check_int("n_angles", n_angles, 1)
     alpha, beta = s2_healpix_grid(axis_level, dtype=torch.float64)
     axes = torch.stack(  # [A, 3], e3nn's angles_to_xyz
         [torch.sin(beta) * torch.sin(alpha), torch.cos(beta), torch.sin(beta) * torch.cos(alpha)], dim=-1
@@ -204,8 +204,7 @@ def so3_tube_grid(
     if not 0 < max_beta <= math.pi:
         raise ValueError(f"max_beta must be in (0, pi], got {max_beta!r}")
     for name, n in (("n_alpha", n_alpha), ("n_beta", n_beta), ("n_gamma", n_gamma)):
-        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            raise ValueError(f"{name} must be an integer >= 1, got {n!r}")
+        check_int(name, n, 1)
     a = torch.arange(n_alpha, dtype=torch.float64) * (2 * math.pi / n_alpha)
     b = torch.arange(1, n_beta + 1, dtype=torch.float64) * (max_beta / n_beta)
     g = torch.linspace(-2 * math.pi, 2 * math.pi, n_gamma, dtype=torch.float64)

@@ -67,6 +67,7 @@ __all__ = [
     "HealpixGridEvaluator",
     "check_streamed_level",
     "dense_grid_logits",
+    "exp_floor",
     "get_grid_evaluator",
 ]
 
@@ -77,7 +78,7 @@ _CHUNK_ELEMENTS = 2**19  # values of one streamed [batch, pixels, gammas] block 
 _VISIT_ALIGN = 8  # pixels per chunk handed to a visitor: a multiple of this (HdrMassAccumulator.GROUP_PIXELS)
 
 
-def _exp_floor(dtype: torch.dtype) -> float:
+def exp_floor(dtype: torch.dtype) -> float:
     """The most negative argument whose ``exp`` is a normal number of ``dtype`` (-87 in float32): ``exp``
     of anything lower is below 1e-38 (1e-307 in float64), and producing subnormals is slow on CPUs."""
     return math.log(torch.finfo(dtype).tiny) + 1.0
@@ -239,7 +240,7 @@ class HealpixGridEvaluator:
                 m = x.amax(dim=2, keepdim=True)  # [B, Pc, 1]
                 reference = m.amax(dim=1, keepdim=True)  # [B, 1, 1]: the chunk's maximum
                 e = torch.sub(x, reference, out=spare[: x.numel()].view_as(x))  # [B, Pc, G]
-                e.clamp_(min=_exp_floor(e.dtype)).exp_()  # no subnormal results: they are slow
+                e.clamp_(min=exp_floor(e.dtype)).exp_()  # no subnormal results: they are slow
                 pix_max[:, p0:p1] = m.squeeze(2)
                 pix_lse[:, p0:p1] = reference.squeeze(2) + e.sum(dim=2).log()
                 visit(x, e, reference.reshape(B), p0, floor)

@@ -43,6 +43,7 @@ from typing import NamedTuple
 
 import torch
 
+from image2sphere.checks import check_int
 from image2sphere.precision import constant_cache, float32_methods
 from image2sphere.so3.grid import (
     MAX_DENSE_LEVEL,
@@ -52,7 +53,7 @@ from image2sphere.so3.grid import (
     so3_healpix_index_to_matrix,
     so3_healpix_nearest_index,
 )
-from image2sphere.so3.grid_eval import MAX_OUTPUT_BYTES, _exp_floor, check_streamed_level
+from image2sphere.so3.grid_eval import MAX_OUTPUT_BYTES, check_streamed_level, exp_floor
 from image2sphere.so3.rotations import check_rotation_matrix
 
 __all__ = [
@@ -388,7 +389,7 @@ def relative_exp(values: torch.Tensor, reference: torch.Tensor | None = None) ->
     raised to it: ``exp`` of them would be a subnormal number, slow to produce, and next to the row's
     maximum (weight 1) they weigh nothing (``e^-86`` in float32)."""
     reference = values.amax(dim=1) if reference is None else reference  # [B]
-    shifted = (values - _finite_or_zero(reference)[:, None]).clamp_(min=_exp_floor(values.dtype))
+    shifted = (values - _finite_or_zero(reference)[:, None]).clamp_(min=exp_floor(values.dtype))
     weights = shifted.exp_()
     empty = reference == -math.inf
     if empty.any():
@@ -612,8 +613,7 @@ class PoseDistribution:
     ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
         """``n`` grid rotations per distribution ``(B, n, 3, 3)`` drawn from the grid softmax (the grid
         protocol's distribution); with ``return_index`` also their indices ``(B, n)``."""
-        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-            raise ValueError(f"n must be a positive integer, got {n!r}")
+        check_int("n", n, 1)
         level = check_streamed_level(level)
         with torch.no_grad():
             lse = self.log_normalizer(level)
@@ -696,8 +696,7 @@ class PoseDistribution:
         coarse = min(level, check_level(mass_level, "mass_level"))
         check_level(coarse, "mass_level", max_level=MAX_DENSE_LEVEL, purpose="the probability mass of modes",
                     bytes_per_point=40)  # fmt: skip
-        if isinstance(k, bool) or not isinstance(k, int) or k < 1:
-            raise ValueError(f"k must be a positive integer, got {k!r}")
+        check_int("k", k, 1)
         if isinstance(radius_deg, bool) or not isinstance(radius_deg, numbers.Real) or not 0 < radius_deg < 180:
             raise ValueError(f"radius_deg must be in (0, 180), got {radius_deg!r}")
         threshold = self.default_threshold(level) if threshold is None else check_threshold(threshold)

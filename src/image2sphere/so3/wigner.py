@@ -18,6 +18,7 @@ import math
 import torch
 from e3nn import o3
 
+from image2sphere.checks import check_int
 from image2sphere.precision import constant_cache
 from image2sphere.so3.rotations import check_rotation_matrix, matrix_to_angles
 
@@ -38,10 +39,8 @@ __all__ = [
 
 
 def check_lmax(lmax, name: str = "lmax") -> int:
-    """Return ``lmax`` as an int, or raise ``ValueError`` if it is not a non-negative integer."""
-    if isinstance(lmax, bool) or not isinstance(lmax, int) or lmax < 0:
-        raise ValueError(f"{name} must be a non-negative integer, got {lmax!r}")
-    return lmax
+    """Return ``lmax`` as an int, or raise ``ValueError`` (naming ``name``) if it is not an integer >= 0."""
+    return check_int(name, lmax, 0)
 
 
 def n_so3_coeffs(lmax: int) -> int:
@@ -57,8 +56,7 @@ def n_s2_coeffs(lmax: int) -> int:
 
 def lmax_from_n_so3_coeffs(n: int) -> int:
     """Inverse of :func:`n_so3_coeffs`; ``ValueError`` if ``n`` is not such a number."""
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise ValueError(f"the number of SO(3) coefficients must be a positive integer, got {n!r}")
+    check_int("the number of SO(3) coefficients", n, 1)
     lmax = 0
     while n_so3_coeffs(lmax) < n:
         lmax += 1

@@ -21,9 +21,8 @@ from image2sphere.data.fixtures.pascal3d import (
     write_renderforcnn,
 )
 from image2sphere.data.loading import collate_skipping_corrupt
-from image2sphere.data.pascal3d import (
-    Pascal3DDataModule,
-    Pascal3DDataset,
+from image2sphere.data.pascal3d import Pascal3DDataModule, Pascal3DDataset
+from image2sphere.data.pascal3d_annotations import (
     list_pascal3d_objects,
     list_renderforcnn,
     parse_renderforcnn_name,

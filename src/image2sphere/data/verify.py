@@ -46,7 +46,7 @@ from image2sphere.data.modelnet_labels import (
     quaternion_table,
     read_quaternion_dict,
 )
-from image2sphere.data.pascal3d import (
+from image2sphere.data.pascal3d_annotations import (
     PASCAL3D_CLASSES,
     RENDERFORCNN_SYNSETS,
     check_classes,
@@ -131,8 +131,9 @@ def verify_symsol(
 ) -> VerifyReport:
     """Check a SYMSOL download: per split and shape, images in ``rotations.npz`` against the public
     release's counts (45,000 train and 5,000 test), every listed image present (and decodable when
-    ``decode``), every equivalent rotation a finite rotation matrix (see :func:`load_symsol_rotations`).
-    Nothing in ``rotations.npz`` is unpickled except numpy arrays (a file asking for more is a problem)."""
+    ``decode``), every equivalent rotation a finite rotation matrix (see
+    :func:`~image2sphere.data.symsol_labels.load_symsol_rotations`). Nothing in ``rotations.npz`` is
+    unpickled except numpy arrays (a file asking for more is a problem)."""
     root = Path(root)
     report = VerifyReport("SYMSOL", root)
     if not root.is_dir():

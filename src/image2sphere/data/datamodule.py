@@ -23,12 +23,14 @@ log = logging.getLogger(__name__)
 class PoseDataModule(pl.LightningDataModule):
     """The loaders shared by the dataset modules: a seeded per-epoch shuffle for training, the
     dataset order for evaluation, every image kept (no dropped last batch), corrupt images skipped
-    by :func:`collate_skipping_corrupt`.
+    by :func:`~image2sphere.data.loading.collate_skipping_corrupt`.
 
-    Workers: ``num_workers`` is set as an integer or ``"auto"`` (:func:`check_num_workers`) and read
-    as the integer it resolves to (:func:`auto_num_workers` with :func:`local_processes` of the
-    attached trainer). With workers they are persistent (started once per loader, not every epoch),
-    images are decoded in them, and :func:`init_worker` runs in each. ``pin_memory`` applies only
+    Workers: ``num_workers`` is set as an integer or ``"auto"``
+    (:func:`~image2sphere.data.workers.check_num_workers`) and read as the integer it resolves to
+    (:func:`~image2sphere.data.workers.auto_num_workers` with
+    :func:`~image2sphere.data.workers.local_processes` of the attached trainer). With workers they are
+    persistent (started once per loader, not every epoch), images are decoded in them, and
+    :func:`~image2sphere.data.workers.init_worker` runs in each. ``pin_memory`` applies only
     when a CUDA device is present. ``multiprocessing_context`` (``None``: the platform's default,
     ``fork`` on Linux; or ``"spawn"``, ``"forkserver"``) is how workers start.
 
@@ -70,8 +72,8 @@ class PoseDataModule(pl.LightningDataModule):
 
     def _loader(self, dataset, train: bool) -> DataLoader:
         """A loader of ``dataset``: the seeded per-epoch permutation for training, the dataset's order for
-        evaluation; in a distributed run each rank's share of either (:class:`EpochShuffleSampler`,
-        :class:`ShardSampler`)."""
+        evaluation; in a distributed run each rank's share of either
+        (:class:`~image2sphere.data.loading.EpochShuffleSampler`, :class:`~image2sphere.data.loading.ShardSampler`)."""
         world, rank = self._ranks()
         if train:
             sampler = EpochShuffleSampler(len(dataset), self.seed, dataset, self._resume, world, rank)

@@ -152,7 +152,8 @@ class ModelNet10Dataset(Dataset):
         image_size: images are resized to this square size when they differ.
         on_corrupt: ``"fail"`` (raise :class:`~image2sphere.data.common.CorruptImageError`) or
             ``"skip"`` (log once and return ``None``) for a record that does not decode.
-        labels: the split's labels if already loaded (:func:`load_modelnet10_labels`).
+        labels: the split's labels if already loaded
+            (:func:`~image2sphere.data.modelnet_labels.load_modelnet10_labels`).
     """
 
     def __init__(

@@ -229,7 +229,8 @@ def load_modelnet10_labels(directory: str | Path) -> ModelNet10Labels:
 
 
 def check_split_files(root: Path, splits: Iterable[str]) -> None:
-    """Raise :func:`missing_dataset_error` unless ``root`` holds the LMDB and pickle of every split."""
+    """Raise :func:`~image2sphere.data.common.missing_dataset_error` unless ``root`` holds the LMDB and
+    pickle of every split."""
     splits = list(dict.fromkeys(splits))
     wanted = ", ".join(f"{s}.Rawjpg.lmdb/" for s in splits)
     expected = f"the unpacked ModelNet10-SO3 folder holding {wanted} (each with data.mdb and {QUATERNION_FILE})"

@@ -136,7 +136,7 @@ def render_symsol(
     as published). The rotations of ``(split, shape)`` are :func:`symsol_rotations` of ``seed``, and
     the npz holds :func:`~image2sphere.data.symmetry.equivalent_rotation_sets` in float32 (NaN-padded
     for marked shapes). Equal arguments give byte-identical files; ``batch_size`` (images per
-    :func:`render` call) and ``progress`` do not change the output.
+    :func:`~image2sphere.data.raycast.render` call) and ``progress`` do not change the output.
 
     Caching and safety: ``root/render_info.json`` records the parameters. If ``root`` already holds a
     complete set with the same parameters, nothing is rendered (cache hit). If it exists with other

@@ -426,3 +426,15 @@ def test_fidelity_ablation_files_change_one_thing_each(tmp_path):
     assert {e: compose_cfg(tmp_path, [f"experiment=fidelity/{e}"]).dataset.image_size for e in FIDELITY} == {
         e: 96 for e in FIDELITY
     }  # all on the built-in data
+
+
+@pytest.mark.parametrize("value", [0, -2, 1.5, True])
+def test_invalid_max_epochs_is_refused_with_its_key(tmp_path, value):
+    """Quick. ``trainer.max_epochs`` is a count of epochs or -1 (no limit); 0 would train nothing and
+    still write a checkpoint as if the run had finished."""
+    from image2sphere.training.run_config import check_train_config
+
+    for ok in (1, -1):
+        check_train_config(compose_cfg(tmp_path, [f"trainer.max_epochs={ok}"]))
+    with pytest.raises(ValueError, match=r"trainer\.max_epochs must be an integer >= 1 \(or -1: no limit\)"):
+        check_train_config(compose_cfg(tmp_path, [f"trainer.max_epochs={value}"]))

@@ -84,7 +84,8 @@ def check_train_config(cfg: DictConfig) -> None:
             "size it was built for; set both to the same value"
         )
     max_epochs = OmegaConf.select(cfg, "trainer.max_epochs")
-    if max_epochs is not None and (isinstance(max_epochs, bool) or not isinstance(max_epochs, int) or max_epochs < -1):
+    valid_epochs = type(max_epochs) is int and (max_epochs >= 1 or max_epochs == -1)  # bool is not a count
+    if max_epochs is not None and not valid_epochs:
         raise ValueError(f"trainer.max_epochs must be an integer >= 1 (or -1: no limit), got {max_epochs!r}")
 
 

@@ -1,9 +1,20 @@
 """Datasets: the SYMSOL renderer, dataset readers and LightningDataModules.
 
-Readers of the published layouts (described in docs/datasets.md): :mod:`~image2sphere.data.symsol` (SYMSOL I/II),
-:mod:`~image2sphere.data.modelnet` (ModelNet10-SO(3), LMDB read directly),
-:mod:`~image2sphere.data.pascal3d` (PASCAL3D+ with RenderForCNN). ``python -m
-image2sphere.data.verify`` checks a download; :mod:`image2sphere.data.fixtures` writes tiny copies.
+One module per job. Every reader shares :mod:`~image2sphere.data.common` (dataset errors, image
+decoding, normalisation, the data seed) and :mod:`~image2sphere.data.safe_io` (pickles, npz and LMDB
+read safely); loaders are built by :mod:`~image2sphere.data.datamodule` from the samplers and
+collation of :mod:`~image2sphere.data.loading` and the worker policy of :mod:`~image2sphere.data.workers`.
+
+Each published layout (described in docs/datasets.md) has a label reader and a Dataset/DataModule
+module: :mod:`~image2sphere.data.symsol_labels` and :mod:`~image2sphere.data.symsol` (SYMSOL I/II),
+:mod:`~image2sphere.data.modelnet_labels` and :mod:`~image2sphere.data.modelnet` (ModelNet10-SO(3),
+LMDB read directly), :mod:`~image2sphere.data.pascal3d_annotations` and
+:mod:`~image2sphere.data.pascal3d` (PASCAL3D+ with RenderForCNN). ``python -m image2sphere.data.verify``
+(:mod:`~image2sphere.data.verify`, every dataset's checks) checks a download;
+:mod:`image2sphere.data.fixtures` writes tiny copies.
+
+The SYMSOL shapes are :mod:`~image2sphere.data.shapes` (geometry, marks) and
+:mod:`~image2sphere.data.symmetry` (symmetry groups, equivalent rotations).
 
 The ray caster is :mod:`image2sphere.data.raycast` (``render``); the writer of the SYMSOL layout is
 :mod:`image2sphere.data.render` (``render_symsol``, and the command ``python -m image2sphere.data.render``),

@@ -27,9 +27,6 @@ import numpy as np
 import torch
 from PIL import Image, UnidentifiedImageError
 
-# not used here: training/run_config.py imports check_num_workers from this module; its home is data/workers.py
-from image2sphere.data.workers import check_num_workers  # noqa: F401
-
 __all__ = [
     "CORRUPT_POLICIES",
     "IMAGENET_MEAN",

@@ -14,7 +14,7 @@ Writing (``python -m src.train``)
   A second Ctrl-C stops at once, as usual. ``trainer.fast_dev_run`` writes no checkpoint.
 * A checkpoint written in the middle of an epoch resumes exactly: the data module is told how many
   batches of that epoch were done (:meth:`PoseDataModule.resume_within_epoch
-  <image2sphere.data.common.PoseDataModule.resume_within_epoch>`), and its sampler skips them.
+  <image2sphere.data.datamodule.PoseDataModule.resume_within_epoch>`), and its sampler skips them.
 
 SLURM: Lightning's own mechanism applies (``SLURMEnvironment(auto_requeue=True)``, on by default
 under SLURM): on the requeue signal (``#SBATCH --signal=SIGUSR1@90``) it writes

@@ -28,7 +28,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from image2sphere.checks import check_int
-from image2sphere.data.common import check_num_workers
+from image2sphere.data.workers import check_num_workers
 
 __all__ = ["check_eval_config", "check_train_config", "describe_run", "resume_config"]
 

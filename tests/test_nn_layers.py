@@ -131,20 +131,22 @@ def test_layers_reject_bad_shapes():
 
 
 def test_relu_grid_follows_the_band_limit_and_keeps_its_aliasing_bounded():
-    """Quick (about 6 s). The ReLU's grid is ``lmax + 2`` by default. Checked against e3nn's ReLU on a dense
-    grid (resolution ``2 lmax + 4``): with the rule the aliasing stays at the same few 1e-3 at every band
-    limit (measured 4.2e-3, 4.6e-3, 5.9e-3 at lmax 2, 3, 4), while a grid fixed at lmax 2's resolution (4,
-    as 8 was fixed at lmax 6's) grows to 2.3e-2 by lmax 4, and a grid one finer than the band limit is
-    about twice as far off as the rule."""
+    """Quick (about 6 s). The ReLU's grid is ``max(8, lmax + 2)`` by default. Why ``lmax + 2``, checked
+    against e3nn's ReLU on a dense grid (resolution ``2 lmax + 4``) at lmax 2 to 4, where that is cheap:
+    with ``lmax + 2`` the aliasing stays at the same few 1e-3 at every band limit (measured 4.2e-3, 4.6e-3,
+    5.9e-3), about half that of a grid one degree coarser, while a grid fixed at one resolution (4 here,
+    as 8 was fixed for every lmax) falls behind as lmax grows (2.3e-2 at lmax 4)."""
     from e3nn.nn import SO3Activation
 
+    from image2sphere.nn.activation import default_relu_resolution
     from image2sphere.so3.wigner import default_dtype
 
+    assert [default_relu_resolution(lmax) for lmax in (0, 2, 6, 7, 8, 10)] == [8, 8, 8, 9, 10, 12]
+    assert SO3ReLU(2).resolution == 8 and SO3ReLU(2, None).resolution == 8 and SO3ReLU(2, 3).resolution == 3
     x_gen = torch.Generator().manual_seed(0)
     errors = {}
     with default_dtype(torch.float64):
         for lmax in (2, 3, 4):
-            assert SO3ReLU(lmax).resolution == lmax + 2 and SO3ReLU(lmax, None).resolution == lmax + 2
             x = torch.randn(8, n_so3_coeffs(lmax), generator=x_gen, dtype=torch.float64)
             dense = SO3Activation(lmax, lmax, torch.relu, 2 * lmax + 4)(x)
             for res in {lmax + 1, lmax + 2, 4}:

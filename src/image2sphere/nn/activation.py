@@ -12,7 +12,7 @@ from image2sphere.checks import check_int
 from image2sphere.precision import constant_cache
 from image2sphere.so3.wigner import check_lmax, default_dtype
 
-__all__ = ["SO3ReLU"]
+__all__ = ["SO3ReLU", "default_relu_resolution"]
 
 
 @constant_cache(maxsize=8)
@@ -29,6 +29,11 @@ def _relu_on_grid(lmax: int, resolution: int, dtype: torch.dtype) -> SO3Activati
     return act
 
 
+def default_relu_resolution(lmax: int) -> int:
+    """The ReLU grid's resolution for band limit ``lmax`` when none is given: ``max(8, lmax + 2)``."""
+    return max(8, lmax + 2)
+
+
 class SO3ReLU(nn.Module):
     """ReLU of an SO(3) signal ``[..., n_so3_coeffs(lmax)]`` evaluated on e3nn's SO(3) quadrature grid.
 
@@ -37,9 +42,11 @@ class SO3ReLU(nn.Module):
     ``lmax`` and ``resolution`` in a process starts from the same tensors (``.to()`` gives each
     module its own copy, as for any buffer).
 
-    ``resolution``: e3nn's grid resolution ``r``; its quadrature is exact up to degree ``r - 1``.
-    ``None`` (the default) follows the band limit: ``lmax + 2``, one degree to spare, which is 8 at
-    lmax 6. A grid fixed at 8 is one degree short at lmax 8 and three at lmax 10, and it cost those
+    ``resolution``: e3nn's grid resolution ``r`` (``32 r^3`` rotations); the finer the grid, the less
+    the ReLU's output, which has every degree, aliases into degrees up to lmax. ``None`` (the
+    default) follows the band limit: ``max(8, lmax + 2)``, one degree to spare above lmax and never
+    coarser than lmax 6's grid (a finer grid only lowers the aliasing, and below lmax 6 it costs
+    little). A grid fixed at 8 is one degree short at lmax 8 and three at lmax 10, and it cost those
     band limits up to 0.8 nats after 2 epochs on the built-in data (docs/training_fidelity.md,
     "The ReLU's grid").
     """
@@ -47,8 +54,8 @@ class SO3ReLU(nn.Module):
     def __init__(self, lmax: int = 6, resolution: int | None = None):
         super().__init__()
         self.lmax = check_lmax(lmax)
-        resolution = check_int("resolution", resolution, 1, allow_none=True, note=" (lmax + 2)")
-        self.resolution = self.lmax + 2 if resolution is None else resolution
+        resolution = check_int("resolution", resolution, 1, allow_none=True, note=" (max(8, lmax + 2))")
+        self.resolution = default_relu_resolution(self.lmax) if resolution is None else resolution
         shared = _relu_on_grid(self.lmax, self.resolution, torch.get_default_dtype())
         # a module of its own around the shared constant tensors (the memo maps each buffer to itself)
         self.act = copy.deepcopy(shared, memo={id(buf): buf for buf in shared.buffers()})

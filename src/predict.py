@@ -6,15 +6,17 @@ from omegaconf import DictConfig
 import image2sphere  # noqa: F401  (sets up the torchvision guard before Lightning is imported)
 from image2sphere.inference import predict
 from image2sphere.training import register_resolvers
+from image2sphere.training.run_config import check_predict_config
 
 register_resolvers()
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="predict.yaml")
 def main(cfg: DictConfig) -> None:
+    check_predict_config(cfg)
     predict(
         ckpt_path=cfg.ckpt_path, image=cfg.image, class_index=cfg.class_index, output=cfg.output, top_k=cfg.top_k,
-        level=cfg.level, radius_deg=cfg.radius_deg, threshold=cfg.threshold, device=cfg.device,
+        level=cfg.eval_grid_level, radius_deg=cfg.radius_deg, threshold=cfg.threshold, device=cfg.device,
     )  # fmt: skip
 
 

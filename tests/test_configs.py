@@ -438,3 +438,67 @@ def test_invalid_max_epochs_is_refused_with_its_key(tmp_path, value):
         check_train_config(compose_cfg(tmp_path, [f"trainer.max_epochs={ok}"]))
     with pytest.raises(ValueError, match=r"trainer\.max_epochs must be an integer >= 1 \(or -1: no limit\)"):
         check_train_config(compose_cfg(tmp_path, [f"trainer.max_epochs={value}"]))
+
+
+def test_scheduler_is_a_group_and_no_default_is_dead(tmp_path):
+    """Quick. The protocol selects the scheduler from its group, as the optimizer; the values every
+    protocol replaces are set nowhere else (the trainer's epochs, the module's schedule)."""
+    assert options("scheduler") == ["step"]
+    for dataset in RESOLVES_TO:
+        cfg = compose_cfg(tmp_path, [f"dataset={dataset}"])
+        assert cfg.hydra.runtime.choices.scheduler == "step"
+        assert cfg.model.scheduler._target_ == "torch.optim.lr_scheduler.StepLR" and cfg.model.scheduler._partial_
+    assert "max_epochs" not in OmegaConf.load(CONF / "trainer" / "default.yaml")
+    assert "scheduler" not in OmegaConf.load(CONF / "module" / "pose_estimation.yaml")
+
+
+def _compose_named(name: str, overrides: list[str]) -> DictConfig:
+    register_resolvers()
+    GlobalHydra.instance().clear()
+    with initialize(version_base="1.3", config_path="../conf"):
+        return compose(config_name=name, overrides=overrides)
+
+
+@pytest.mark.parametrize(
+    "config, old, new, value",
+    [("train", "model.refine_mode", "model.refine", True), ("predict", "level", "eval_grid_level", 3)],
+)
+def test_renamed_keys_work_under_their_old_names_with_a_warning(tmp_path, caplog, config, old, new, value):
+    """Quick. One name per quantity in train, eval and predict; the old name of a renamed key still
+    works for one release: its value is used under the new name, with a one-line warning naming it."""
+    from image2sphere.training.run_config import RENAMED_KEYS, check_predict_config, check_train_config
+
+    assert RENAMED_KEYS[config][old] == new
+    check = {"train": check_train_config, "predict": check_predict_config}[config]
+    required = {"train": [], "predict": ["ckpt_path=x.ckpt", "image=x.png"]}[config]
+    for key, warned in ((old, True), (new, False)):
+        caplog.clear()
+        cfg = _compose_named(config, [*required, f"{key}={str(value).lower()}"])
+        check(cfg)
+        assert OmegaConf.select(cfg, new) == value and OmegaConf.select(cfg, old, default="<gone>") == "<gone>"
+        warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+        if warned:
+            assert len(warnings) == 1 and f"{old} is deprecated" in warnings[0] and f"use {new}" in warnings[0]
+            assert "\n" not in warnings[0]
+        else:
+            assert not warnings
+    # the eval config already used the names the others now use
+    evaluation = _compose_named("eval", ["ckpt_path=x.ckpt"])
+    assert {"eval_grid_level", "refine"} <= set(evaluation) and not RENAMED_KEYS["eval"]
+
+
+def test_module_and_stored_configs_take_the_old_refine_name(caplog):
+    """Quick. ``PoseEstimationModule(refine_mode=...)`` warns and uses it; a checkpoint's stored config
+    with the old key is read with the new one (no warning: the user did not type it)."""
+    import torch
+
+    from image2sphere.nn import ResNetEncoder, RotationRegression
+    from image2sphere.training.checkpoint import _upgrade_run_config
+
+    net = RotationRegression(ResNetEncoder(depth=18, weights=None), 32)
+    module = PoseEstimationModule(net, optimizer=torch.optim.SGD, refine_mode=True)
+    assert module.hparams.refine is True and "refine_mode" not in module.hparams
+    assert any("model.refine_mode is deprecated" in r.getMessage() for r in caplog.records)
+    stored = {"model": {"refine_mode": True, "net": {"_target_": "image2sphere.nn.RotationRegression"}}}
+    _upgrade_run_config(stored, Path("old.ckpt"))
+    assert stored["model"]["refine"] is True and "refine_mode" not in stored["model"]

@@ -281,7 +281,15 @@ def _upgrade_run_config(run_config: dict, path: Path) -> None:
       outputs were the coefficients as they came (``0``); the default is now ``1``.
     * ``model.net.activation_resolution`` of I2S: absent, the ReLU's grid was 8 whatever lmax was; the
       default (``null``) is now ``lmax + 2``.
+
+    Keys renamed since (:data:`~image2sphere.training.run_config.RENAMED_KEYS`) get their new names:
+    ``model.refine_mode`` is ``model.refine``.
     """
+    model = run_config.get("model")
+    if isinstance(model, dict) and "refine_mode" in model:
+        refine = model.pop("refine_mode")
+        if refine is not None:
+            model["refine"] = refine
     net = (run_config.get("model") or {}).get("net")
     target = str(net.get("_target_", "")) if isinstance(net, dict) else ""
     if target.endswith(".FourierMLP") and "degree_power" not in net:

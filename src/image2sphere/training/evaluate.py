@@ -78,7 +78,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     if cfg.get("seed") is not None:
         pl.seed_everything(cfg.seed, workers=True)
     ckpt = load_checkpoint(cfg.ckpt_path)
-    module = build_module(ckpt, cfg.ckpt_path, eval_grid_level=int(cfg.eval_grid_level), refine_mode=bool(cfg.refine))
+    module = build_module(ckpt, cfg.ckpt_path, eval_grid_level=int(cfg.eval_grid_level), refine=bool(cfg.refine))
     datamodule = _datamodule(cfg, ckpt)
     if cfg.get("batch_size") is not None:
         if int(cfg.batch_size) < 1:

@@ -57,6 +57,7 @@ from image2sphere.so3.grid import (
     so3_grid_size,
     so3_healpix_index_to_matrix,
 )
+from image2sphere.training.run_config import deprecated_name
 
 __all__ = ["NonFiniteLossError", "PoseEstimationModule"]
 
@@ -85,7 +86,9 @@ class PoseEstimationModule(pl.LightningModule):
         spread_grid_level: grid of the spread metric (a full-grid sum over all ground truths).
         class_names: names of the classes (``class_index`` values); set by the training script from
             the data module when ``None``.
-        refine_mode: refine the test point estimate by gradient ascent on the Fourier series.
+        refine: refine the test point estimate by gradient ascent on the Fourier series.
+        refine_mode: the old name of ``refine`` (deprecated; one release): when not ``None``, a warning
+            and its value is used.
     """
 
     def __init__(
@@ -99,7 +102,8 @@ class PoseEstimationModule(pl.LightningModule):
         eval_grid_level: int = 5,
         spread_grid_level: int = 4,
         class_names: Sequence[str] | None = None,
-        refine_mode: bool = False,
+        refine: bool = False,
+        refine_mode: bool | None = None,
     ):
         super().__init__()
         methods = method_of(net)  # ValueError for a network that is not a pose network
@@ -113,7 +117,10 @@ class PoseEstimationModule(pl.LightningModule):
         )
         # Only plain values go into checkpoints (they must load with torch.load(weights_only=True));
         # the full resolved config is stored separately as ``run_config``.
-        self.save_hyperparameters(logger=False, ignore=["net", "optimizer", "scheduler"])
+        self.save_hyperparameters(logger=False, ignore=["net", "optimizer", "scheduler", "refine_mode"])
+        if refine_mode is not None:
+            deprecated_name("model.refine_mode", "model.refine")
+            self.hparams.refine = bool(refine_mode)
         self.optimizer_factory = optimizer
         self.scheduler_factory = scheduler
         self.net = net
@@ -206,7 +213,7 @@ class PoseEstimationModule(pl.LightningModule):
         else:
             lse, _, argmax = dist.grid_logsumexp_and_max(level)  # [B], [B], [B]
             ll = log_likelihood_pairs(dist, targets, mask, level, log_normalizer=lse)  # [B, M], NaN on padding
-        if self.hparams.refine_mode:
+        if self.hparams.refine:
             pred = dist.mode(level, refine=True).to(targets.dtype)
         else:
             pred = so3_healpix_index_to_matrix(argmax, level, dtype=targets.dtype).to(targets.device)

@@ -1,7 +1,10 @@
 """The run's config before any work starts: one check of its values, and the config of a resumed run.
 
-:func:`check_train_config` and :func:`check_eval_config` refuse invalid values (naming the key and
-what is allowed) before a dataset is read or rendered, a network built or a file written.
+:func:`check_train_config`, :func:`check_eval_config` and :func:`check_predict_config` refuse invalid
+values (naming the key and what is allowed) before a dataset is read or rendered, a network built or
+a file written. They also take the old names of renamed keys (:data:`RENAMED_KEYS`, e.g. predict's
+``level``, now ``eval_grid_level`` as in train and eval): an old key that is given is used under its
+new name, with a one-line warning naming it. The old names are removed in the next release.
 
 :func:`resume_config` decides what a run started with ``ckpt_path=...`` trains: the checkpoint
 holds the resolved config of the run that wrote it (``run_config``), and
@@ -25,12 +28,20 @@ import copy
 import logging
 from typing import Any
 
-from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from image2sphere.checks import check_int
 from image2sphere.data.workers import check_num_workers
 
-__all__ = ["check_eval_config", "check_train_config", "describe_run", "resume_config"]
+__all__ = [
+    "RENAMED_KEYS",
+    "check_eval_config",
+    "check_predict_config",
+    "check_train_config",
+    "deprecated_name",
+    "describe_run",
+    "resume_config",
+]
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +55,36 @@ TRAINER_FROM_CHECKPOINT = (
     "accumulate_grad_batches",
     "gradient_clip_val",
 )
+
+
+# The old names of renamed keys, {old: new} per entry point (conf/train.yaml, eval.yaml, predict.yaml):
+# one name per quantity in all three. Each old key stays in its config file as null for one release;
+# given a value, it is used under the new name with a warning.
+RENAMED_KEYS: dict[str, dict[str, str]] = {
+    "train": {"model.refine_mode": "model.refine"},
+    "eval": {},
+    "predict": {"level": "eval_grid_level"},
+}
+
+
+def deprecated_name(old: str, new: str) -> None:
+    """The one-line warning for a renamed key that was given under its old name."""
+    log.warning("%s is deprecated and will be removed in the next release: use %s (its value is used)", old, new)
+
+
+def _apply_renamed_keys(cfg: DictConfig, task: str) -> None:
+    """Move the value of each old key of ``task`` that is given (not null) to its new key, with a warning,
+    and drop the old keys from ``cfg``."""
+    for old, new in RENAMED_KEYS[task].items():
+        value = OmegaConf.select(cfg, old)
+        if value is not None:
+            deprecated_name(old, new)
+            OmegaConf.update(cfg, new, value, force_add=True)
+        parent, _, leaf = old.rpartition(".")
+        node = OmegaConf.select(cfg, parent) if parent else cfg
+        if isinstance(node, DictConfig) and leaf in node:
+            with open_dict(node):
+                del node[leaf]
 
 
 def _int_at_least(cfg: DictConfig, key: str, minimum: int, allow_null: bool = False) -> None:
@@ -61,7 +102,9 @@ def _check_levels(cfg: DictConfig, keys: list[str]) -> None:
 
 
 def check_train_config(cfg: DictConfig) -> None:
-    """Refuse invalid values of a training config (``python -m src.train``) before any work starts."""
+    """Refuse invalid values of a training config (``python -m src.train``) before any work starts; renamed
+    keys given under their old names are moved to the new ones (:data:`RENAMED_KEYS`)."""
+    _apply_renamed_keys(cfg, "train")
     seed = cfg.get("seed")
     if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
         raise ValueError(f"seed must be an integer or null, got {seed!r}")
@@ -90,7 +133,9 @@ def check_train_config(cfg: DictConfig) -> None:
 
 
 def check_eval_config(cfg: DictConfig) -> None:
-    """Refuse invalid values of an evaluation config (``python -m src.eval``) before any work starts."""
+    """Refuse invalid values of an evaluation config (``python -m src.eval``) before any work starts; renamed
+    keys given under their old names are moved to the new ones (:data:`RENAMED_KEYS`)."""
+    _apply_renamed_keys(cfg, "eval")
     if cfg.get("ckpt_path") is None:
         raise ValueError(
             "ckpt_path is required: python -m src.eval ckpt_path=logs/train/runs/<run>/checkpoints/last.ckpt"
@@ -100,6 +145,12 @@ def check_eval_config(cfg: DictConfig) -> None:
     _int_at_least(cfg, "plots", 0)
     if not isinstance(cfg.get("refine"), bool):
         raise ValueError(f"refine must be true or false, got {cfg.get('refine')!r}")
+
+
+def check_predict_config(cfg: DictConfig) -> None:
+    """Move renamed keys of a prediction config (``python -m src.predict``) to their new names
+    (:data:`RENAMED_KEYS`); :func:`image2sphere.inference.predict` checks the values."""
+    _apply_renamed_keys(cfg, "predict")
 
 
 # ---------------------------------------------------------------------------------------------- resume
@@ -231,7 +282,7 @@ PROTOCOL_KEYS = {
     "encoder": ("encoder",),
     "optimizer": ("optimizer", "model.optimizer"),
     "epochs": ("trainer.max_epochs",),
-    "scheduler": ("model.scheduler",),
+    "scheduler": ("scheduler", "model.scheduler"),
 }
 
 

@@ -311,10 +311,16 @@ def test_checkpoint_from_before_projector_normalization_keeps_its_rule(tmp_path,
 
 
 def test_i2s_checkpoint_from_before_the_relu_grid_rule_keeps_resolution_8(tmp_path, trained):
-    """Before ``activation_resolution`` followed the band limit, I2S's ReLU grid was 8 at every lmax. The
-    trained fixture is at lmax 3, where today's rule gives 5, so the rebuilt grid shows which rule was used."""
+    """Before ``activation_resolution`` followed the band limit, I2S's ReLU grid was 8 at every lmax. A
+    stored config without the key gets 8 (at lmax 10 today's rule would give 12), and loading a checkpoint
+    applies it: the trained fixture's network (lmax 3) is rebuilt with that grid."""
     from image2sphere.nn import SO3ReLU
-    from image2sphere.training.checkpoint import build_module, load_checkpoint
+    from image2sphere.nn.activation import default_relu_resolution
+    from image2sphere.training.checkpoint import _upgrade_run_config, build_module, load_checkpoint
+
+    stored = {"model": {"net": {"_target_": "image2sphere.nn.I2S", "lmax": 10, "projector_normalization": "mean"}}}
+    _upgrade_run_config(stored, tmp_path / "stored.ckpt")
+    assert stored["model"]["net"]["activation_resolution"] == 8 != default_relu_resolution(10)
 
     ckpt = torch.load(trained / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     net_cfg = ckpt["run_config"]["model"]["net"]
@@ -324,7 +330,7 @@ def test_i2s_checkpoint_from_before_the_relu_grid_rule_keeps_resolution_8(tmp_pa
     loaded = load_checkpoint(old)
     assert loaded["run_config"]["model"]["net"]["activation_resolution"] == 8
     relus = [m for m in build_module(loaded, old).net.modules() if isinstance(m, SO3ReLU)]
-    assert relus and all(m.resolution == 8 for m in relus) and net_cfg["lmax"] + 2 != 8
+    assert relus and all(m.resolution == 8 for m in relus)
 
 
 def test_fourier_mlp_checkpoint_from_before_degree_power_predicts_as_it_was_trained(tmp_path):

@@ -18,12 +18,13 @@ import math
 import pytest
 import torch
 
+import image2sphere.distributions.grid_protocol as grid_protocol
 import image2sphere.so3.grid_eval as grid_eval
-import image2sphere.so3.pose_distribution as pose_distribution
 from conftest import brute_force_nearest, haar_rotations, reference_dense_grid_logits
-from image2sphere.distributions import PointEstimate, PoseDistribution
+from image2sphere.distributions import PointEstimate, PoseDistribution, SO3Distribution
 from image2sphere.distributions.base import DensityNotAvailable
 from image2sphere.distributions.euler_bins import EulerBins
+from image2sphere.distributions.hdr_masses import HdrMassAccumulator
 from image2sphere.distributions.matrix_fisher import MatrixFisher
 from image2sphere.metrics import (
     HDR_COVERAGE_KEYS,
@@ -36,8 +37,7 @@ from image2sphere.metrics import (
     summarize_pose_metrics,
     tie_break_uniforms,
 )
-from image2sphere.so3 import SO3Distribution, angles_to_matrix, so3_healpix_grid
-from image2sphere.so3.pose_distribution import HdrMassAccumulator
+from image2sphere.so3 import angles_to_matrix, so3_healpix_grid
 from image2sphere.so3.wigner import n_so3_coeffs
 
 ALPHAS = torch.tensor(HDR_LEVELS, dtype=torch.float64)
@@ -106,7 +106,7 @@ class VanishingFisher(MatrixFisher):
 @pytest.mark.parametrize("k", [1, 12])
 def test_streamed_masses_equal_brute_force_on_the_full_grid(family, k, knobs, monkeypatch):
     level = 2
-    monkeypatch.setattr(pose_distribution, "CHUNK_POINTS", 1000)  # 4608 points: 5 chunks, the last partial
+    monkeypatch.setattr(grid_protocol, "CHUNK_POINTS", 1000)  # 4608 points: 5 chunks, the last partial
     monkeypatch.setattr(grid_eval, "_CHUNK_ELEMENTS", 3000)  # fast path: 5 pixel chunks, the last partial
     for name, value in KNOBS[knobs].items():
         monkeypatch.setattr(HdrMassAccumulator, name, value)
@@ -156,7 +156,7 @@ def test_summary_sweep_handles_chunks_where_the_density_vanishes(monkeypatch):
             values = super().unnormalized_log_density(rotations)
             return (values - 1000).masked_fill(values < 0, -math.inf)
 
-    monkeypatch.setattr(pose_distribution, "CHUNK_POINTS", 200)  # many chunks, some wholly -inf
+    monkeypatch.setattr(grid_protocol, "CHUNK_POINTS", 200)  # many chunks, some wholly -inf
     dist = FarBelow(10 * torch.eye(3, dtype=torch.float64).expand(2, 3, 3))
     values = dist.unnormalized_log_density(so3_healpix_grid(2, torch.float64))
     chunks = values.split(192, dim=1)
@@ -208,7 +208,7 @@ def test_the_query_point_is_tied_with_itself_even_when_its_two_values_disagree(o
         def _values_at_index(self, index, level):
             return super()._values_at_index(index, level) + offset
 
-    monkeypatch.setattr(pose_distribution, "CHUNK_POINTS", 1000)
+    monkeypatch.setattr(grid_protocol, "CHUNK_POINTS", 1000)
     dist = Disagreeing(fisher(3, 8.0, seed=1).F)
     R = queries(3, 12, seed=18)
     summary = dist.grid_summary(2, R)

@@ -1144,11 +1144,12 @@ CLAIM = re.compile(r"^(?P<code>.*?\S)\s+#\s*(?P<claim>\[[\d,\s]+\]|[A-Z]\w+)")
 
 def _is_claim(claim: str) -> bool:
     """A shape, or the name of one of the package's public classes."""
+    import image2sphere.distributions
     import image2sphere.inference
     import image2sphere.nn
     import image2sphere.so3
 
-    modules = (image2sphere.so3, image2sphere.nn, image2sphere.inference)
+    modules = (image2sphere.so3, image2sphere.distributions, image2sphere.nn, image2sphere.inference)
     return claim.startswith("[") or any(isinstance(getattr(m, claim, None), type) for m in modules)
 
 

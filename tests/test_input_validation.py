@@ -24,13 +24,13 @@ from PIL import Image
 from image2sphere.checks import check_int, check_number
 from image2sphere.data import common
 from image2sphere.data.common import decode_image, image_to_uint8, load_image
+from image2sphere.distributions import SO3Distribution
 from image2sphere.inference import Predictor, predict
 from image2sphere.plot import figure_format, save_figure
 from image2sphere.so3 import (
     MAX_DENSE_LEVEL,
     MAX_STREAMED_LEVEL,
     HealpixGridEvaluator,
-    SO3Distribution,
     check_level,
     dense_grid_logits,
     flat_wigner,

@@ -12,8 +12,8 @@ import pytest
 import torch
 from torch import nn
 
+import image2sphere.distributions.grid_protocol as base
 import image2sphere.distributions.implicit as implicit
-import image2sphere.so3.pose_distribution as base
 from image2sphere.distributions.implicit import ImplicitDistribution
 from image2sphere.nn.ipdf import IPDF, positional_encoding
 from image2sphere.so3.grid import so3_grid_size, so3_healpix_grid

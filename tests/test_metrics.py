@@ -9,6 +9,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from conftest import haar_rotations
+from image2sphere.distributions import LOG_UNIFORM_DENSITY, SO3Distribution
 from image2sphere.metrics import (
     log_density_from_grid_logits,
     log_likelihood_pairs,
@@ -17,8 +18,6 @@ from image2sphere.metrics import (
     summarize_pose_metrics,
 )
 from image2sphere.so3 import (
-    LOG_UNIFORM_DENSITY,
-    SO3Distribution,
     dense_grid_logits,
     n_so3_coeffs,
     so3_grid_size,

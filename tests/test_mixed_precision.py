@@ -152,11 +152,11 @@ def drop_caches():
     """For a control that computes under autocast without the mechanism: the tables it caches may be
     built in bfloat16, so they are dropped afterwards and no later test reads them."""
     from image2sphere import metrics
-    from image2sphere.distributions import matrix_fisher
-    from image2sphere.so3 import grid_eval, pose_distribution
+    from image2sphere.distributions import grid_protocol, matrix_fisher
+    from image2sphere.so3 import grid_eval
 
     yield
-    for cache in (grid_eval._cached, pose_distribution._grid_rotations, matrix_fisher._half_interval_rule,
+    for cache in (grid_eval._cached, grid_protocol._grid_rotations, matrix_fisher._half_interval_rule,
                   metrics._flat_grid):  # fmt: skip
         cache.cache_clear()
 
@@ -224,8 +224,8 @@ def _subclasses(cls: type) -> list[type]:
 def test_every_network_and_distribution_method_is_a_float32_region():
     """The base classes wrap what each subclass defines: every pose network's forward,
     output_distribution and loss, and every method of every distribution family."""
+    import image2sphere.distributions.fourier  # noqa: F401
     import image2sphere.nn  # noqa: F401  (every network and family is defined)
-    import image2sphere.so3.distribution  # noqa: F401
 
     networks = _subclasses(Float32Head)
     assert {c.__name__ for c in networks} >= {"PoseNetwork", "I2S", "IPDF", "MatrixFisherNet", "RotationRegression"}
@@ -235,7 +235,7 @@ def test_every_network_and_distribution_method_is_a_float32_region():
             if method is nn.Module.forward:  # not defined anywhere (an abstract base)
                 continue
             assert getattr(method, "__float32_region__", False), f"{cls.__name__}.{name} is not a float32 region"
-    families = [PoseDistribution, *_subclasses(PoseDistribution)]
+    families = [*PoseDistribution.__mro__[:-1], *_subclasses(PoseDistribution)]  # the grid protocol's too
     assert {c.__name__ for c in families} >= {"SO3Distribution", "Bingham", "ImplicitDistribution", "PointEstimate"}
     for cls in families:
         for name, attr in vars(cls).items():
@@ -245,10 +245,10 @@ def test_every_network_and_distribution_method_is_a_float32_region():
             if callable(function):
                 assert getattr(function, "__float32_region__", False), f"{cls.__name__}.{name} is not a float32 region"
     # the tables cached for later calls are built outside autocast
-    from image2sphere.distributions import matrix_fisher
-    from image2sphere.so3 import grid_eval, pose_distribution
+    from image2sphere.distributions import grid_protocol, matrix_fisher
+    from image2sphere.so3 import grid_eval
 
-    for cached in (grid_eval._cached, pose_distribution._grid_rotations, matrix_fisher._half_interval_rule):
+    for cached in (grid_eval._cached, grid_protocol._grid_rotations, matrix_fisher._half_interval_rule):
         assert getattr(cached.__wrapped__, "__float32_region__", False), cached
 
 

@@ -8,8 +8,9 @@ import pytest
 import torch
 from e3nn import o3
 
+from image2sphere.distributions import SO3Distribution
 from image2sphere.nn import I2S, FourierMLP, HarmonicS2Projector, ResNetEncoder, SpatialS2Projector
-from image2sphere.so3 import SO3Distribution, n_s2_coeffs, n_so3_coeffs, random_rotations, s2_healpix_grid
+from image2sphere.so3 import n_s2_coeffs, n_so3_coeffs, random_rotations, s2_healpix_grid
 from image2sphere.so3.wigner import rotate_s2_coeffs
 
 

@@ -14,17 +14,10 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation as ScipyRotation
 
-import image2sphere.so3.pose_distribution as pose_distribution
-from image2sphere.distributions import DensityNotAvailable, PointEstimate, PoseDistribution
+import image2sphere.distributions.grid_protocol as grid_protocol
+from image2sphere.distributions import DensityNotAvailable, PointEstimate, PoseDistribution, SO3Distribution
 from image2sphere.nn.regression import RotationRegression
-from image2sphere.so3 import (
-    SO3Distribution,
-    geodesic_distance,
-    project_to_so3,
-    random_rotations,
-    rotation_6d_to_matrix,
-    so3_grid_size,
-)
+from image2sphere.so3 import geodesic_distance, project_to_so3, random_rotations, rotation_6d_to_matrix, so3_grid_size
 from image2sphere.so3.grid import so3_healpix_index_to_matrix
 
 GENERIC = PoseDistribution  # the base class's methods, called on an SO3Distribution
@@ -38,7 +31,7 @@ def fourier() -> SO3Distribution:
 
 @pytest.mark.parametrize("chunk", [1000, 1 << 16])
 def test_generic_grid_sweep_matches_the_fast_path(fourier, chunk, monkeypatch):
-    monkeypatch.setattr(pose_distribution, "CHUNK_POINTS", chunk)
+    monkeypatch.setattr(grid_protocol, "CHUNK_POINTS", chunk)
     lse, top, arg = GENERIC.grid_logsumexp_and_max(fourier, 3)
     lse_fast, top_fast, arg_fast = fourier.grid_logsumexp_and_max(3)
     torch.testing.assert_close(lse, lse_fast, rtol=0, atol=1e-9)
@@ -218,7 +211,7 @@ def test_constants_cached_during_inference_serve_training_later():
     from image2sphere.distributions.matrix_fisher import MatrixFisher
 
     caches = {
-        pose_distribution._grid_rotations: (2, torch.float32, "cpu"),
+        grid_protocol._grid_rotations: (2, torch.float32, "cpu"),
         metrics._flat_grid: (2, torch.float32, "cpu"),
         matrix_fisher._half_interval_rule: (torch.device("cpu"), torch.float64),
         wigner._so3_layout: (2,),
@@ -236,7 +229,7 @@ def test_constants_cached_during_inference_serve_training_later():
     assert not any(t.is_inference() for t in vars(evaluator).values() if isinstance(t, torch.Tensor))
     grid_eval._cached.cache_clear()
     # the symptom: an evaluation under inference mode, then a differentiable mode search on the same grid
-    pose_distribution._grid_rotations.cache_clear()
+    grid_protocol._grid_rotations.cache_clear()
     F = torch.randn(2, 3, 3, dtype=torch.float32)
     with torch.inference_mode():
         MatrixFisher(F).mode(2)

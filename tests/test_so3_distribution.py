@@ -1,4 +1,4 @@
-"""Tests for image2sphere.so3.distribution.SO3Distribution."""
+"""Tests for image2sphere.distributions.fourier.SO3Distribution."""
 
 from __future__ import annotations
 
@@ -8,9 +8,8 @@ import pytest
 import torch
 
 from conftest import brute_force_nearest, haar_rotations, reference_dense_grid_logits, reference_flat_wigner
+from image2sphere.distributions import LOG_UNIFORM_DENSITY, SO3Distribution
 from image2sphere.so3 import (
-    LOG_UNIFORM_DENSITY,
-    SO3Distribution,
     flat_wigner,
     geodesic_distance,
     so3_healpix_grid,

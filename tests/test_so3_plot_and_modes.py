@@ -10,8 +10,9 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from conftest import haar_rotations
+from image2sphere.distributions import SO3Distribution
 from image2sphere.plot import plot_so3_distribution, rotation_to_plot_coords, save_figure
-from image2sphere.so3 import SO3Distribution, dense_grid_logits, so3_grid_size
+from image2sphere.so3 import dense_grid_logits, so3_grid_size
 from image2sphere.so3.rotations import geodesic_distance_deg
 from image2sphere.so3.wigner import flat_wigner
 

@@ -10,14 +10,9 @@ import torch
 from torch import nn
 
 from conftest import haar_rotations
+from image2sphere.distributions import LOG_UNIFORM_DENSITY
 from image2sphere.metrics import log_density_from_grid_logits, min_angular_error_deg
-from image2sphere.so3 import (
-    LOG_UNIFORM_DENSITY,
-    dense_grid_logits,
-    n_so3_coeffs,
-    so3_healpix_index_to_matrix,
-    so3_healpix_nearest_index,
-)
+from image2sphere.so3 import dense_grid_logits, n_so3_coeffs, so3_healpix_index_to_matrix, so3_healpix_nearest_index
 from image2sphere.training import NonFiniteLossError, PoseEstimationModule
 
 LMAX = 2

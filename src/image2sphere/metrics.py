@@ -33,9 +33,9 @@ import torch
 from image2sphere.checks import check_int
 from image2sphere.data.common import stable_seed
 from image2sphere.distributions.base import LOG_UNIFORM_DENSITY, PoseDistribution
+from image2sphere.distributions.hdr_masses import tie_tolerance
 from image2sphere.precision import constant_cache
 from image2sphere.so3.grid import check_level, so3_grid_size, so3_healpix_grid, so3_healpix_nearest_index
-from image2sphere.so3.pose_distribution import tie_tolerance
 from image2sphere.so3.rotations import geodesic_distance_deg
 
 __all__ = [
@@ -211,7 +211,7 @@ def hdr_levels_from_grid_logits(
 
     The dense reference of the streamed path (:func:`density_pairs`): with ``v`` the logit at the grid
     point nearest a target, the masses of the points with logit ``> v + tol`` and within ``tol`` of ``v``
-    (:func:`~image2sphere.so3.pose_distribution.tie_tolerance`), combined by :func:`hdr_levels`.
+    (:func:`~image2sphere.distributions.hdr_masses.tie_tolerance`), combined by :func:`hdr_levels`.
     Builds a ``(B, M, N)`` comparison: small grids only.
     """
     level, n_points = _check_grid_logits(grid_logits, level)

@@ -23,7 +23,7 @@ The mechanism is in two base classes, not in the methods:
   ``output_distribution`` and ``loss`` of each subclass in :func:`float32_region` when the subclass
   is defined (``__init_subclass__``); ``encode`` runs the encoder under the autocast that enclosed
   the call (:func:`encoder_autocast`).
-* :class:`~image2sphere.so3.pose_distribution.PoseDistribution` wraps every method of every family
+* :class:`~image2sphere.distributions.base.PoseDistribution` wraps every method of every family
   (:func:`float32_methods`).
 """
 

@@ -1,7 +1,14 @@
-"""Distributions over SO(3): the interface every pose method's output goes through
-(:class:`~image2sphere.distributions.base.PoseDistribution`) and the parametric families of the
-baselines, one module each (``matrix_fisher``, ``rotation_laplace``, ``bingham``, ``von_mises``,
-``implicit``). The Fourier family of I2S is :class:`image2sphere.so3.SO3Distribution`."""
+"""Distributions over SO(3), the only home of them.
+
+* :mod:`~image2sphere.distributions.base`: the interface every pose method's output goes through
+  (:class:`~image2sphere.distributions.base.PoseDistribution`, its contract) and
+  :class:`~image2sphere.distributions.base.PointEstimate` (a point regressor's output).
+* :mod:`~image2sphere.distributions.grid_protocol`: how every family is scored on the HEALPix grid
+  (streamed sweeps, log densities, modes, sampling, points above a threshold), for any family;
+  :mod:`~image2sphere.distributions.hdr_masses`: the highest-density-region masses of its sweep.
+* The families, one module each: ``fourier`` (I2S's :class:`~image2sphere.distributions.fourier.SO3Distribution`),
+  ``matrix_fisher``, ``rotation_laplace``, ``bingham``, ``von_mises``, ``euler_bins``, ``implicit``.
+"""
 
 from image2sphere.distributions.base import (
     LOG_UNIFORM_DENSITY,
@@ -10,5 +17,13 @@ from image2sphere.distributions.base import (
     PoseDistribution,
     check_threshold,
 )
+from image2sphere.distributions.fourier import SO3Distribution
 
-__all__ = ["LOG_UNIFORM_DENSITY", "DensityNotAvailable", "PointEstimate", "PoseDistribution", "check_threshold"]
+__all__ = [
+    "LOG_UNIFORM_DENSITY",
+    "DensityNotAvailable",
+    "PointEstimate",
+    "PoseDistribution",
+    "SO3Distribution",
+    "check_threshold",
+]

@@ -133,7 +133,7 @@ def method_of(net: nn.Module) -> tuple[Callable[[torch.Tensor], PoseDistribution
         return net.output_distribution, net.loss
     lmax = getattr(net, "lmax", None)
     if isinstance(lmax, int) and not isinstance(lmax, bool):
-        from image2sphere.so3.distribution import SO3Distribution, fourier_grid_nll
+        from image2sphere.distributions.fourier import SO3Distribution, fourier_grid_nll
 
         return (  # in float32 under autocast, as a pose network's own methods
             float32_region(lambda output: SO3Distribution(output, lmax)),

@@ -3,7 +3,7 @@
 Both map images ``[B, 3, H, W]`` (and, optionally, class indices ``[B]``) to the Fourier
 coefficients ``[B, n_so3_coeffs(lmax)]`` of an SO(3) signal in the flat Wigner layout; the signal
 on an SO(3) grid, put through a softmax, is the predicted distribution
-(:class:`image2sphere.so3.SO3Distribution`). Every choice is a constructor argument, so Hydra
+(:class:`image2sphere.distributions.fourier.SO3Distribution`). Every choice is a constructor argument, so Hydra
 builds any variant of the paper's ablations from configuration.
 """
 
@@ -14,12 +14,12 @@ import math
 import torch
 from torch import nn
 
+from image2sphere.distributions.fourier import SO3Distribution, fourier_grid_nll
 from image2sphere.nn.activation import SO3ReLU
 from image2sphere.nn.base import PoseNetwork
 from image2sphere.nn.projector import HarmonicS2Projector, SpatialS2Projector
 from image2sphere.nn.s2_conv import S2Conv
 from image2sphere.nn.so3_conv import SO3Conv
-from image2sphere.so3.distribution import SO3Distribution, fourier_grid_nll
 from image2sphere.so3.grid import so3_tube_grid
 from image2sphere.so3.wigner import check_lmax, degree_scale, n_so3_coeffs, so3_layout
 

@@ -1,11 +1,12 @@
-"""Rotation math, finite rotation groups, HEALPix grids on S2 and SO(3), Wigner layouts and SO(3) distributions.
+"""Rotation math, finite rotation groups, HEALPix grids on S2 and SO(3), Wigner layouts and the grid evaluator.
 
 Conventions are fixed project-wide (see ``docs/conventions.md`` and each module's docstring):
 column-vector rotation matrices, e3nn YXY Euler angles, the flat Wigner layout for SO(3) signals,
-and a pixel-major flat order (``p * n_gamma + k``) for the SO(3) HEALPix grid.
+and a pixel-major flat order (``p * n_gamma + k``) for the SO(3) HEALPix grid. Pure math: nothing here
+imports :mod:`image2sphere.distributions` (the distributions over SO(3), I2S's Fourier family
+included, live there).
 """
 
-from image2sphere.so3.distribution import LOG_UNIFORM_DENSITY, SO3Distribution, check_threshold
 from image2sphere.so3.grid import (
     MAX_DENSE_LEVEL,
     MAX_LEVEL,
@@ -61,12 +62,10 @@ from image2sphere.so3.wigner import (
 )
 
 __all__ = [
-    "LOG_UNIFORM_DENSITY",
     "MAX_DENSE_LEVEL",
     "MAX_LEVEL",
     "MAX_STREAMED_LEVEL",
     "HealpixGridEvaluator",
-    "SO3Distribution",
     "aet_biternions_to_matrix",
     "aet_to_matrix",
     "angles_to_matrix",
@@ -75,7 +74,6 @@ __all__ = [
     "check_lmax",
     "check_rotation_matrix",
     "check_streamed_level",
-    "check_threshold",
     "dense_grid_logits",
     "flat_wigner",
     "flat_wigner_from_angles",

@@ -288,7 +288,7 @@ class HealpixGridEvaluator:
         ``[B, Pc, n_gamma]`` (pixels ``p0 ..``), their ``exp(values - reference)``, ``reference [B]`` and a
         lower bound of the logsumexp ``[B]`` (each grid point once over the pass; see
         :meth:`_pixel_reductions`), e.g.
-        :meth:`~image2sphere.so3.pose_distribution.HdrMassAccumulator.add_fibres`.
+        :meth:`~image2sphere.distributions.hdr_masses.HdrMassAccumulator.add_fibres`.
         """
         coeffs = self._check(coeffs)
         pix_max, pix_lse = self._pixel_reductions(coeffs, chunk_pixels, visit)

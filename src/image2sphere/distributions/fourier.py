@@ -1,13 +1,20 @@
-"""Probability distributions over SO(3) given by a Fourier signal (flat Wigner layout).
+"""The Fourier family (I2S's output): distributions over SO(3) given by a signal in the flat Wigner layout.
 
 Conventions (docs/conventions.md#densities)
 -------------------------------------------
 * The model's signal ``f`` (logits) is evaluated on the HEALPix SO(3) grid of a level and put
-  through a softmax: ``p_i = softmax(f(R_i))`` over the ``N`` grid points.
+  through a softmax: ``p_i = softmax(f(R_i))`` over the ``N`` grid points (the grid protocol,
+  :mod:`image2sphere.distributions.grid_protocol`).
 * The density at ``R`` w.r.t. the Haar measure normalised to total volume ``pi^2`` (IPDF's
   convention) is ``p_nearest(R) * N / pi^2``; a uniform distribution has log density
   ``-log(pi^2) = -2.2894``.
 * Grid values and indices are in pixel-major order (:mod:`image2sphere.so3.grid`).
+
+:class:`SO3Distribution` overrides only what it computes differently from the grid protocol: the
+sweeps and the values at grid points come from the grid evaluator
+(:class:`~image2sphere.so3.grid_eval.HealpixGridEvaluator`), :meth:`~SO3Distribution.points_above` and
+:meth:`~SO3Distribution.sample` go through the gamma-marginals of the pixels, and modes are refined
+by gradient ascent on the series.
 """
 
 from __future__ import annotations
@@ -19,6 +26,7 @@ import torch
 from e3nn import o3
 
 from image2sphere.checks import check_int
+from image2sphere.distributions.base import PoseDistribution
 from image2sphere.so3.grid import (
     MAX_DENSE_LEVEL,
     check_level,
@@ -27,11 +35,10 @@ from image2sphere.so3.grid import (
     so3_healpix_nearest_index,
 )
 from image2sphere.so3.grid_eval import MAX_OUTPUT_BYTES, check_streamed_level, get_grid_evaluator
-from image2sphere.so3.pose_distribution import LOG_UNIFORM_DENSITY, PoseDistribution, check_threshold
-from image2sphere.so3.rotations import check_rotation_matrix, matrix_to_angles, rotvec_to_matrix
+from image2sphere.so3.rotations import matrix_to_angles, rotvec_to_matrix
 from image2sphere.so3.wigner import check_lmax, default_dtype, flat_wigner, n_so3_coeffs, so3_blocks, wigner_D
 
-__all__ = ["LOG_UNIFORM_DENSITY", "SO3Distribution", "check_threshold", "fourier_grid_nll"]
+__all__ = ["SO3Distribution", "fourier_grid_nll"]
 
 
 def fourier_grid_nll(coeffs: torch.Tensor, lmax: int, rotation: torch.Tensor, level: int) -> torch.Tensor:
@@ -98,21 +105,12 @@ class SO3Distribution(PoseDistribution):
         return self._evaluator(level).logsumexp_and_max(self.coeffs.detach(), visit=visit)
 
     def _values_at_index(self, index: torch.Tensor, level: int) -> torch.Tensor:
-        return self._evaluator(level).logits_at(self.coeffs.detach(), index)
+        """The signal at grid indices ``(B, K)`` or ``(K,)``: ``(B, K)``, from the evaluator's tables (as its
+        sweep computes it), differentiable."""
+        return self._evaluator(level).logits_at(self.coeffs, index)
 
     def _evaluator(self, level: int):
         return get_grid_evaluator(self.lmax, check_streamed_level(level), self.coeffs.dtype, self.coeffs.device)
-
-    def _check_query(self, rotations: torch.Tensor) -> torch.Tensor:
-        check_rotation_matrix(rotations, "rotations")
-        if rotations.ndim == 4 and rotations.shape[0] != self.batch_size:
-            raise ValueError(
-                f"rotations of shape (B, K, 3, 3) must have B = batch size {self.batch_size}, "
-                f"got {tuple(rotations.shape)}"
-            )
-        if rotations.ndim not in (3, 4):
-            raise ValueError(f"rotations must have shape (B, K, 3, 3) or (K, 3, 3), got {tuple(rotations.shape)}")
-        return rotations.to(self.coeffs.dtype)
 
     # ------------------------------------------------------------------ values
     def logits(self, rotations: torch.Tensor) -> torch.Tensor:
@@ -140,40 +138,9 @@ class SO3Distribution(PoseDistribution):
             )
         return self._evaluator(level).logits(self.coeffs)
 
-    def log_prob_grid(self, level: int) -> torch.Tensor:
-        """Log-softmax of the signal over the grid: ``(B, N)``."""
-        return torch.log_softmax(self.grid_logits(level), dim=-1)
-
     def log_normalizer(self, level: int) -> torch.Tensor:
         """``logsumexp`` of the signal over the grid, ``(B,)``, streamed (no ``(B, N)`` tensor)."""
         return self._evaluator(level).logsumexp(self.coeffs)
-
-    def log_prob_at_index(
-        self, index: torch.Tensor, level: int, log_normalizer: torch.Tensor | None = None
-    ) -> torch.Tensor:
-        """``log p_i`` at grid indices ``(B, K)`` or ``(K,)``: ``(B, K)``, streamed.
-
-        ``log_normalizer`` ``(B,)``: :meth:`log_normalizer` of ``level`` when the caller already has it
-        (e.g. from ``logsumexp_and_max``), so the grid is not swept a second time.
-        """
-        ev = self._evaluator(level)
-        if log_normalizer is None:
-            log_normalizer = ev.logsumexp(self.coeffs)
-        return ev.logits_at(self.coeffs, index) - log_normalizer[:, None]
-
-    def log_density(
-        self, rotations: torch.Tensor, level: int, log_normalizer: torch.Tensor | None = None
-    ) -> torch.Tensor:
-        """Log density (Haar measure of volume pi^2) at rotations ``(B, K, 3, 3)`` or ``(K, 3, 3)``: ``(B, K)``.
-
-        Read at the grid point nearest each rotation: ``log(p_nearest * N / pi^2)``. ``log_normalizer``
-        as in :meth:`log_prob_at_index`.
-        """
-        level = check_streamed_level(level)
-        rotations = self._check_query(rotations)
-        index = so3_healpix_nearest_index(rotations, level).to(self.coeffs.device)  # [(B,) K]
-        n_points = math.prod(so3_grid_size(level))
-        return self.log_prob_at_index(index, level, log_normalizer) + math.log(n_points) + LOG_UNIFORM_DENSITY
 
     # ------------------------------------------------------------------ point estimate and samples
     def mode(self, level: int, refine: bool = False, steps: int = 100, lr: float | None = None) -> torch.Tensor:
@@ -187,10 +154,7 @@ class SO3Distribution(PoseDistribution):
         check_int("steps", steps, 0, note=" (0: no refinement)")
         if lr is not None and (isinstance(lr, bool) or not isinstance(lr, numbers.Real) or not 0 < lr < math.inf):
             raise ValueError(f"lr must be a finite number > 0 (or None: a tenth of the grid spacing), got {lr!r}")
-        ev = self._evaluator(level)
-        with torch.no_grad():
-            _, _, index = ev.logsumexp_and_max(self.coeffs.detach())
-        R0 = so3_healpix_index_to_matrix(index, level, dtype=self.coeffs.dtype)
+        R0 = super().mode(level)
         if not refine or steps == 0:
             return R0
         spacing = 2 * math.pi / so3_grid_size(level)[1]
@@ -244,12 +208,7 @@ class SO3Distribution(PoseDistribution):
         ``ValueError`` when more than ``max_points`` points pass (raise the threshold). A threshold
         must be a probability in ``(0, 1]``; when no point reaches it the entry is empty.
         """
-        thresholds = check_threshold(threshold).reshape(-1)
-        if thresholds.numel() not in (1, self.batch_size):
-            raise ValueError(
-                f"threshold must be a number or one per distribution ({self.batch_size},), got {thresholds.numel()}"
-            )
-        thresholds = thresholds.expand(self.batch_size)
+        thresholds = self._thresholds(threshold)
         ev = self._evaluator(level)
         out = []
         with torch.no_grad():
@@ -274,45 +233,6 @@ class SO3Distribution(PoseDistribution):
                 order = torch.argsort(prob, descending=True)
                 out.append((index[order], prob[order]))
         return out
-
-    def max_prob(self, level: int) -> torch.Tensor:
-        """The largest grid probability ``max_i p_i`` per distribution, ``(B,)`` float64 on the CPU."""
-        ev = self._evaluator(level)
-        with torch.no_grad():
-            lse, top, _ = ev.logsumexp_and_max(self.coeffs.detach())
-        return (top - lse).double().exp().cpu()
-
-    def default_threshold(self, level: int) -> torch.Tensor:
-        """``min(10 / N, max_i p_i)`` per distribution ``(B,)``: ten times the uniform probability,
-        lowered to the top probability for flat distributions so that the top point always passes."""
-        n_points = math.prod(so3_grid_size(check_streamed_level(level)))
-        return torch.clamp(self.max_prob(level) * (1 - 1e-6), max=10.0 / n_points)
-
-    def modes(
-        self,
-        level: int,
-        k: int = 5,
-        radius_deg: float = 20.0,
-        threshold: float | None = None,
-        refine: bool = False,
-        mass_level: int = 4,
-    ) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        """Up to ``k`` separate modes per distribution and the probability mass around each.
-
-        Modes: greedy non-maximum suppression on the grid of ``level``. The most probable remaining
-        point is a mode and the points within ``radius_deg`` of it leave the search. Only points
-        with ``p_i >= threshold`` are candidates (default :meth:`default_threshold`: ten times the
-        uniform probability, so that flat regions give no modes, or the top probability when that
-        is lower). Mass: the probability, on the whole grid of ``min(level, mass_level)``, of the
-        points within ``radius_deg`` of a mode, each counted for its nearest mode. Returned in
-        decreasing mass, each as ``(rotations (k', 3, 3), mass (k',))``. With ``refine`` each mode is
-        moved by gradient ascent on the Fourier series (as :meth:`mode`).
-
-        An explicit ``threshold`` must be a probability in ``(0, 1]``. When no grid point of a
-        distribution reaches it, that distribution has no modes: its entry is ``(rotations (0, 3, 3),
-        mass (0,))`` (compare with :meth:`max_prob`). ``mass_level`` is at most ``MAX_DENSE_LEVEL``.
-        """
-        return super().modes(level, k, radius_deg, threshold, refine, mass_level)
 
     def _refine_modes(self, b: int, centres: torch.Tensor, level: int) -> torch.Tensor:
         sub = SO3Distribution(self.coeffs[b : b + 1].expand(len(centres), -1), self.lmax)

@@ -71,8 +71,9 @@ class I2S(_FourierNetwork):
             :class:`~image2sphere.nn.HarmonicS2Projector`).
         s2_kernel_level: HEALPix level of the spatial S2 filter's points.
         so3_kernel_max_deg: support of the SO(3) filter around the identity (22.5 deg).
-        activation_resolution: resolution of e3nn's SO(3) grid for the ReLU; ``None``: ``lmax + 2``,
-            the band limit's own (8 at lmax 6; :class:`~image2sphere.nn.SO3ReLU`).
+        activation_resolution: resolution of e3nn's SO(3) grid for the ReLU; ``None``:
+            ``max(8, lmax + 2)``, one degree to spare above the band limit
+            (:class:`~image2sphere.nn.SO3ReLU`).
         num_classes: if > 0, the class one-hot is appended to the feature map as constant channels.
         init: initialisation of the S2 and SO(3) convolutions, ``"unit"`` (N(0, 1) parameters scaled
             in the forward pass) or ``"fan_in"`` (parameters at the scale that keeps the signal's

@@ -79,16 +79,16 @@ def test_predict_prints_modes_and_writes_the_plot_next_to_the_image(trained, tmp
     ckpt, _, _ = trained
     image = tmp_path / "cube.png"
     Image.fromarray(render("cube", haar_rotations(1, seed=4, dtype=torch.float32), 64)[0].numpy()).save(image)
-    proc = _run("src.predict", [f"ckpt_path={ckpt}", f"image={image}", "top_k=3", "level=3",
+    proc = _run("src.predict", [f"ckpt_path={ckpt}", f"image={image}", "top_k=3", "eval_grid_level=3",
                                 f"hydra.run.dir={tmp_path / 'run'}"])  # fmt: skip
     assert "mode 1: mass" in proc.stdout and "YXY angles" in proc.stdout
     plot = tmp_path / "cube_so3.png"
     assert plot.read_bytes()[:4] == b"\x89PNG"
     # the plot is never overwritten; output= chooses another file
-    proc = _run("src.predict", [f"ckpt_path={ckpt}", f"image={image}", "level=3",
+    proc = _run("src.predict", [f"ckpt_path={ckpt}", f"image={image}", "eval_grid_level=3",
                                 f"hydra.run.dir={tmp_path / 'run2'}"], check=False)  # fmt: skip
     assert proc.returncode != 0 and "choose another output=" in proc.stderr
-    _run("src.predict", [f"ckpt_path={ckpt}", f"image={image}", "level=3", f"output={tmp_path / 'other.png'}",
+    _run("src.predict", [f"ckpt_path={ckpt}", f"image={image}", "eval_grid_level=3", f"output={tmp_path / 'other.png'}",
                          f"hydra.run.dir={tmp_path / 'run3'}"])  # fmt: skip
     assert (tmp_path / "other.png").is_file()
 

@@ -222,7 +222,9 @@ def test_eval_predict_and_predictor_on_each_family(checkpoints, tmp_path, model)
 
     image = tmp_path / "cube.png"
     Image.fromarray(render("cube", haar_rotations(1, seed=4, dtype=torch.float32), 64)[0].numpy()).save(image)
-    proc = _run(["src.predict", f"ckpt_path={ckpt}", f"image={image}", "level=3", f"hydra.run.dir={tmp_path / 'run'}"])
+    proc = _run(
+        ["src.predict", f"ckpt_path={ckpt}", f"image={image}", "eval_grid_level=3", f"hydra.run.dir={tmp_path / 'run'}"]
+    )
     assert "mode 1: mass" in proc.stdout and "YXY angles" in proc.stdout, proc.stdout
     assert (tmp_path / "cube_so3.png").read_bytes()[:4] == b"\x89PNG"
 

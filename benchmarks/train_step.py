@@ -1,0 +1,139 @@
+"""Benchmark: one I2S training step at the paper's size, float32 against bf16 autocast, and the level-5
+evaluation, on the device at hand (a GPU when there is one, else the CPU).
+
+The network is ``conf/model/i2s.yaml`` composed as a training run composes it (``encoder=resnet50
+dataset.image_size=224``; random weights), the paper's batch of 64, the loss on the training grid
+(``model.train_grid_level``, 3). Measured in one run:
+
+1. **training step** (forward, loss, backward, SGD step with Nesterov momentum) in float32 and under
+   ``torch.autocast(dtype=torch.bfloat16)``, as ``trainer.precision=bf16-mixed`` runs it: the median of
+   ``--repeats`` steps after ``--warmup`` untimed ones; images per second and the bf16 / float32 ratio.
+   The two losses of the same batch and weights are printed side by side: the SO(3) head runs in float32
+   under autocast, so they differ only by the encoder's rounding;
+2. **evaluation** of the level-5 grid (2,359,296 rotations) for a batch: ``grid_logsumexp_and_max(5)``
+   (the normaliser and the mode, what the test loop computes per image), median per image; the first
+   call, which builds the grid evaluator, is timed apart.
+
+On a GPU every timed region ends with ``torch.cuda.synchronize()``.
+
+Usage::
+
+    python benchmarks/train_step.py                         # paper size on the GPU (or the CPU)
+    python benchmarks/train_step.py --batch 2 --image-size 64 --encoder resnet18 --repeats 1   # smoke
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import tempfile
+import time
+from contextlib import nullcontext
+from pathlib import Path
+
+os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
+
+import torch  # noqa: E402
+from hydra.utils import instantiate  # noqa: E402
+
+from _machine import cpu_model  # noqa: E402  (benchmarks/_machine.py, beside this script)
+from heads import compose_cfg  # noqa: E402  (benchmarks/heads.py, beside this script)
+from image2sphere.nn.base import method_of  # noqa: E402
+from image2sphere.so3.rotations import random_rotations  # noqa: E402
+
+
+def sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def timed(fn, device: torch.device, repeats: int, warmup: int) -> float:
+    """Median wall time of ``fn()`` over ``repeats`` runs after ``warmup`` untimed runs."""
+    for _ in range(warmup):
+        fn()
+    sync(device)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        sync(device)
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--encoder", default="resnet50")
+    p.add_argument("--image-size", type=int, default=224)
+    p.add_argument("--batch", type=int, default=64)
+    p.add_argument("--eval-batch", type=int, default=16)
+    p.add_argument("--level", type=int, default=5, help="evaluation grid level")
+    p.add_argument("--repeats", type=int, default=10)
+    p.add_argument("--warmup", type=int, default=3)
+    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    args = p.parse_args()
+    device = torch.device(args.device)
+    if device.type == "cuda":
+        torch.backends.cudnn.benchmark = True
+        name = torch.cuda.get_device_name(device)
+    else:
+        name = cpu_model()
+    print(f"device: {name}; torch {torch.__version__}")
+    print(f"I2S, {args.encoder} at {args.image_size} px, batch {args.batch}\n")
+
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg = compose_cfg(Path(tmp), ["model=i2s", f"encoder={args.encoder}", f"dataset.image_size={args.image_size}"])
+    grid_level = int(cfg.model.train_grid_level)
+    torch.manual_seed(0)
+    net = instantiate(cfg.model.net).to(device)
+    output_distribution, loss_fn = method_of(net)
+    images = torch.randn(args.batch, 3, args.image_size, args.image_size, device=device)
+    rotations = random_rotations(args.batch).to(device)
+    state = {k: v.detach().clone() for k, v in net.state_dict().items()}
+
+    results = {}
+    for label, dtype in (("float32", None), ("bf16 autocast", torch.bfloat16)):
+        net.load_state_dict(state)
+        net.train()
+        opt = torch.optim.SGD(net.parameters(), lr=1e-3, momentum=0.9, nesterov=True)
+        ctx = (lambda d=dtype: torch.autocast(device.type, dtype=d)) if dtype is not None else nullcontext
+
+        def step(ctx=ctx, opt=opt):
+            opt.zero_grad(set_to_none=True)
+            with ctx():
+                loss = loss_fn(net(images), rotations, grid_level).mean()
+            loss.backward()
+            opt.step()
+            return loss
+
+        with torch.no_grad(), ctx():  # the loss of the same weights and batch, before any step
+            first_loss = float(loss_fn(net(images), rotations, grid_level).mean())
+        seconds = timed(step, device, args.repeats, args.warmup)
+        results[label] = seconds
+        print(
+            f"training step, {label:13s}: {seconds * 1e3:8.1f} ms  ({args.batch / seconds:7.1f} images/s)"
+            f"  loss of the first batch {first_loss:.5f}"
+        )
+    print(f"bf16 / float32 step time: {results['bf16 autocast'] / results['float32']:.2f}x\n")
+
+    net.eval()
+    with torch.no_grad():
+        output = net(images[: args.eval_batch])
+        dist = output_distribution(output)
+        sync(device)
+        t0 = time.perf_counter()
+        dist.grid_logsumexp_and_max(args.level)
+        sync(device)
+        first = time.perf_counter() - t0
+        seconds = timed(lambda: output_distribution(output).grid_logsumexp_and_max(args.level), device, 3, 1)
+    print(
+        f"level-{args.level} evaluation (normaliser and mode), batch {args.eval_batch}: "
+        f"{seconds / args.eval_batch * 1e3:.2f} ms per image (first call, building the evaluator: {first:.2f} s)"
+    )
+    if device.type == "cuda":
+        print(f"peak GPU memory: {torch.cuda.max_memory_allocated(device) / 2**30:.2f} GiB")
+
+
+if __name__ == "__main__":
+    main()

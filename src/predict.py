@@ -17,6 +17,7 @@ def main(cfg: DictConfig) -> None:
     predict(
         ckpt_path=cfg.ckpt_path, image=cfg.image, class_index=cfg.class_index, output=cfg.output, top_k=cfg.top_k,
         level=cfg.eval_grid_level, radius_deg=cfg.radius_deg, threshold=cfg.threshold, device=cfg.device,
+        recalibration=cfg.get("recalibration", "auto"),
     )  # fmt: skip
 
 

@@ -104,7 +104,12 @@ def test_predictor_on_a_batch_matches_the_trained_module(trained):
     x = predictor.preprocess(images)
     assert x.shape == (3, 3, 32, 32)
     with torch.no_grad():
-        torch.testing.assert_close(dist.coeffs, module(x))
+        # the recalibrated distribution the module shows (its coefficients divided by the stored temperature)
+        torch.testing.assert_close(dist.coeffs, module.distribution(module(x)).coeffs)
+        assert module.recalibration is not None and predictor.temperature == module.recalibration.temperature
+        raw = Predictor.from_checkpoint(ckpt, recalibration=False)(images)
+        torch.testing.assert_close(raw.coeffs, module(x))
+        torch.testing.assert_close(dist.coeffs * predictor.temperature, raw.coeffs)
     modes = dist.modes(level=2, k=3)
     assert len(modes) == 3 and all(len(r) == len(m) <= 3 for r, m in modes)
     with pytest.raises(ValueError, match=r"uint8 of shape \(H, W, 3\)"):

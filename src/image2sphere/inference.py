@@ -23,7 +23,7 @@ from PIL import Image
 
 from image2sphere.checks import check_int
 from image2sphere.data.common import image_to_uint8, load_image, normalize_images
-from image2sphere.distributions.base import PoseDistribution, check_threshold
+from image2sphere.distributions.base import PoseDistribution, check_temperature, check_threshold
 from image2sphere.nn.base import method_of
 from image2sphere.so3.grid_eval import check_streamed_level
 from image2sphere.so3.rotations import matrix_to_angles
@@ -45,25 +45,33 @@ class Predictor:
         image_size: the square input size it was trained with.
         class_names: names of the class indices (for models with class-label input).
         device: where the network runs.
+        temperature: the recalibration's temperature (docs/evaluation.md#recalibration): every predicted
+            distribution is tempered by it; ``None``: as the network predicts them.
     """
 
     def __init__(self, net: torch.nn.Module, image_size: int, class_names: Sequence[str] | None = None,
-                 device: str | torch.device = "cpu"):  # fmt: skip
+                 device: str | torch.device = "cpu", temperature: float | None = None):  # fmt: skip
         self.device = torch.device(device)
         self.net = net.to(self.device).eval()
         self.image_size = int(image_size)
         self.class_names = list(class_names) if class_names else None
         self.lmax = getattr(net, "lmax", None)
         self.output_distribution = method_of(net)[0]
+        self.temperature = None if temperature is None else check_temperature(temperature)
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path, device: str | torch.device = "cpu") -> Predictor:
+    def from_checkpoint(
+        cls, path: str | Path, device: str | torch.device = "cpu", recalibration: bool = True
+    ) -> Predictor:
         """Load a checkpoint of ``python -m src.train`` (``weights_only=True``; see
-        :mod:`image2sphere.training.checkpoint`)."""
+        :mod:`image2sphere.training.checkpoint`). With ``recalibration`` (the default) its distributions
+        are tempered by the temperature stored in the checkpoint, if any."""
         ckpt = load_checkpoint(path)
         module = build_module(ckpt, path)
         image_size = ckpt["run_config"].get("dataset", {}).get("image_size") or module.net.image_size
-        return cls(module.net, int(image_size), module.class_names, device)
+        fitted = module.recalibration if recalibration else None
+        temperature = None if fitted is None else fitted.temperature
+        return cls(module.net, int(image_size), module.class_names, device, temperature)
 
     def preprocess(self, images: ImageLike | Sequence[ImageLike]) -> torch.Tensor:
         """Images (paths, PIL images, uint8 arrays ``(H, W, 3)``) -> normalised ``(B, 3, S, S)``."""
@@ -135,7 +143,8 @@ class Predictor:
         x = self.preprocess(images)
         classes = self.check_class_index(class_index, len(x))
         output = self.net(x) if classes is None else self.net(x, classes.to(self.device))
-        return self.output_distribution(output)
+        dist = self.output_distribution(output)
+        return dist if self.temperature is None else dist.tempered(self.temperature)
 
 
 def format_modes(rotations: torch.Tensor, mass: torch.Tensor) -> str:
@@ -161,6 +170,7 @@ def predict(
     radius_deg: float = 20.0,
     threshold: float | None = None,
     device: str = "cpu",
+    recalibration: str = "auto",
 ) -> dict:
     """Print the top-k modes of the distribution for one image and write its plot.
 
@@ -168,8 +178,9 @@ def predict(
     format its extension names (``.png``, ``.jpg``, ``.pdf``, ``.svg``, ...); an existing file is never
     overwritten. ``threshold``: a probability in ``(0, 1]``, or ``None`` for the default (ten times the
     uniform probability). When no grid point reaches it, a line says so and the plot is drawn empty.
-    Arguments are checked before the checkpoint is loaded. Returns ``{"rotations", "mass", "plot"}``
-    (no modes: ``(0, 3, 3)`` and ``(0,)``).
+    ``recalibration``: ``auto`` applies the temperature stored in the checkpoint, if any; ``off`` shows the
+    distribution as the network predicts it. Arguments are checked before the checkpoint is loaded.
+    Returns ``{"rotations", "mass", "plot"}`` (no modes: ``(0, 3, 3)`` and ``(0,)``).
     """
     from image2sphere.plot import figure_format, plot_so3_distribution, save_figure
 
@@ -186,7 +197,11 @@ def predict(
         raise ValueError(f"radius_deg must be in (0, 180) degrees, got {radius_deg!r}")
     if threshold is not None:
         threshold = float(check_threshold(threshold))
-    predictor = Predictor.from_checkpoint(ckpt_path, device)
+    if recalibration not in ("auto", "off"):
+        raise ValueError(f"recalibration must be auto or off, got {recalibration!r}")
+    predictor = Predictor.from_checkpoint(ckpt_path, device, recalibration=recalibration == "auto")
+    if predictor.temperature is not None:
+        print(f"recalibrated: temperature {predictor.temperature:.4g} from {ckpt_path} (recalibration=off: without)")
     dist = predictor(image_path, class_index)
     rotations, mass = dist.modes(level, k=top_k, radius_deg=radius_deg, threshold=threshold)[0]
     if len(mass):

@@ -149,7 +149,7 @@ def plot_dataset_item(
     c = int(item["class_index"])
     name = class_names[c] if c < len(class_names) else c
     gt = item["rotations"][item["mask"]]
-    dist = model.output_distribution(output.float())
+    dist = model.distribution(output.float())  # recalibrated, where the model has a fitted temperature
     return plot_so3_distribution(dist, level=level, threshold=threshold, gt_rotations=gt, title=f"{title} ({name})")
 
 
@@ -159,7 +159,9 @@ def plot_reliability(
     """Reliability diagram of the calibration metrics (docs/evaluation.md#calibration): the coverage
     ``hdr_coverage_<alpha>`` against the nominal HDR mass ``alpha``, one line per class of
     ``class_names`` that has the keys (``hdr_coverage_<alpha>/<class>``) and a thick line for the mean
-    over classes, the diagonal of perfect calibration, each line's ECE in the legend.
+    over classes, the diagonal of perfect calibration, each line's ECE in the legend. Where the metrics
+    have the recalibrated coverage too (``hdr_coverage_<alpha>_calibrated``, docs/evaluation.md#recalibration),
+    its mean over classes is drawn as a second thick line.
 
     Below the diagonal the truths fall outside the regions more often than they should (over-confident);
     above it, less often (under-confident). ``ValueError`` when ``metrics`` has no calibration (a point
@@ -185,6 +187,11 @@ def plot_reliability(
     label = "mean over classes" if classes else "all test images"
     ax.plot(levels, mean, color="black", marker="o", linewidth=2.5,
             label=f"{label} (ECE {metrics['calibration_ece']:.3f})")  # fmt: skip
+    recalibrated = [f"{key}_calibrated" for key in HDR_COVERAGE_KEYS]
+    if all(key in metrics for key in recalibrated) and "calibration_ece_calibrated" in metrics:
+        temperature, ece = metrics.get("temperature", math.nan), metrics["calibration_ece_calibrated"]
+        ax.plot(levels, [metrics[key] for key in recalibrated], color="tab:red", marker="s", linewidth=2.5,
+                label=f"{label}, recalibrated (T = {temperature:.3g}, ECE {ece:.3f})")  # fmt: skip
     ax.set_xlim(0, 1)
     ax.set_ylim(0, 1)
     ax.set_aspect("equal")

@@ -23,6 +23,14 @@ a family overrides only where it computes something differently (the Fourier fam
 :mod:`image2sphere.distributions.fourier`). A point regressor subclasses :class:`PointEstimate`
 instead: it has a mode and no density.
 
+* **Tempering** (recalibration, docs/evaluation.md#recalibration): :meth:`PoseDistribution.tempered`
+  gives the distribution with density proportional to ``p(R) ** (1 / T)`` for a temperature ``T > 0``
+  (``T < 1`` sharpens, ``T > 1`` broadens). It keeps the order of the rotations by density, so the
+  mode, the ranking and every accuracy are unchanged. The default, :class:`TemperedDistribution`,
+  divides the unnormalised log density by ``T`` and normalises on the grid; a family where the power
+  stays in the family overrides it (the Fourier family scales its coefficients, the matrix Fisher
+  family its parameter matrix, both exactly).
+
 * **Mixed precision** (:mod:`image2sphere.precision`): every method of this class, of the grid
   protocol and of each family (``__init__``, class methods and property getters included) computes in
   float32 (or float64 where the family's parameters are) under an enclosing ``torch.autocast``:
@@ -34,6 +42,8 @@ instead: it has a mode and no density.
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 
@@ -47,7 +57,9 @@ __all__ = [
     "DensityNotAvailable",
     "PointEstimate",
     "PoseDistribution",
+    "TemperedDistribution",
     "check_num_components",
+    "check_temperature",
     "check_threshold",
 ]
 
@@ -59,6 +71,14 @@ class DensityNotAvailable(NotImplementedError):
 def check_num_components(num_components) -> int:
     """The number of components of a mixture family: an integer >= 1, else ``ValueError``."""
     return check_int("num_components", num_components, 1)
+
+
+def check_temperature(temperature, name: str = "temperature") -> float:
+    """A temperature: a finite number > 0, else ``ValueError`` naming ``name``."""
+    number = isinstance(temperature, (int, float)) and not isinstance(temperature, bool)
+    if not number or not math.isfinite(temperature) or temperature <= 0:
+        raise ValueError(f"{name} must be a finite number > 0 (1 leaves a distribution as it is), got {temperature!r}")
+    return float(temperature)
 
 
 class PoseDistribution(GridProtocol):
@@ -111,6 +131,13 @@ class PoseDistribution(GridProtocol):
         rotations = self._check_query(rotations)
         return self.unnormalized_log_density(rotations) - self.exact_log_normalizer()[:, None]
 
+    # ------------------------------------------------------------------ recalibration
+    def tempered(self, temperature: float) -> PoseDistribution:
+        """The distribution with density proportional to ``p(R) ** (1 / temperature)`` (module docstring);
+        ``self`` at temperature 1. Families whose power stays in the family override this."""
+        temperature = check_temperature(temperature)
+        return self if temperature == 1.0 else TemperedDistribution(self, temperature)
+
     # ------------------------------------------------------------------ checks
     def _check_query(self, rotations: torch.Tensor) -> torch.Tensor:
         check_rotation_matrix(rotations, "rotations")
@@ -125,6 +152,27 @@ class PoseDistribution(GridProtocol):
 
 
 float32_methods(PoseDistribution)  # the base class's own methods (subclasses: __init_subclass__)
+
+
+class TemperedDistribution(PoseDistribution):
+    """``base`` raised to the power ``1 / temperature`` and renormalised (on the grid): the unnormalised
+    log density divided by the temperature. The mode is ``base``'s; there is no closed-form normaliser
+    or exact sampler (the grid protocol's are used)."""
+
+    def __init__(self, base: PoseDistribution, temperature: float):
+        if not base.has_density:
+            raise DensityNotAvailable(f"{type(base).__name__} has no density to temper")
+        self.temperature = check_temperature(temperature)
+        if isinstance(base, TemperedDistribution):  # powers compose: (p^(1/a))^(1/b) = p^(1/(ab))
+            base, self.temperature = base.base, base.temperature * self.temperature
+        self.base = base
+        self.batch_size, self.dtype, self.device = base.batch_size, base.dtype, base.device
+
+    def unnormalized_log_density(self, rotations: torch.Tensor) -> torch.Tensor:
+        return self.base.unnormalized_log_density(rotations) / self.temperature  # [B, K]
+
+    def exact_mode(self) -> torch.Tensor:
+        return self.base.exact_mode()  # a positive power keeps the peak where it is
 
 
 class PointEstimate(PoseDistribution):
@@ -160,3 +208,8 @@ class PointEstimate(PoseDistribution):
 
     def modes(self, level: int = 5, k: int = 5, **_) -> list[tuple[torch.Tensor, torch.Tensor]]:
         return [(r[None], torch.ones(1, dtype=self.dtype, device=self.device)) for r in self.rotation]
+
+    def tempered(self, temperature: float) -> PointEstimate:
+        """A point estimate has no density to temper: itself (the temperature is checked)."""
+        check_temperature(temperature)
+        return self

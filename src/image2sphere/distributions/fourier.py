@@ -26,7 +26,7 @@ import torch
 from e3nn import o3
 
 from image2sphere.checks import check_int
-from image2sphere.distributions.base import PoseDistribution
+from image2sphere.distributions.base import PoseDistribution, check_temperature
 from image2sphere.so3.grid import (
     MAX_DENSE_LEVEL,
     check_level,
@@ -90,6 +90,12 @@ class SO3Distribution(PoseDistribution):
     def unnormalized_log_density(self, rotations: torch.Tensor) -> torch.Tensor:
         """The signal (logits) at rotations ``(B, K, 3, 3)`` or ``(K, 3, 3)``: ``(B, K)``."""
         return self.logits(rotations)
+
+    def tempered(self, temperature: float) -> SO3Distribution:
+        """``p ** (1 / temperature)``, renormalised: the signal is linear in its coefficients, so this is the
+        same family with the coefficients divided by the temperature (exact, on the fast path)."""
+        temperature = check_temperature(temperature)
+        return self if temperature == 1.0 else SO3Distribution(self.coeffs / temperature, self.lmax)
 
     def grid_logsumexp_and_max(self, level: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``logsumexp``, maximum and argmax of the signal over the grid of ``level`` (fast path)."""

@@ -50,7 +50,7 @@ import numpy as np
 import torch
 
 from image2sphere.checks import check_int
-from image2sphere.distributions.base import PoseDistribution
+from image2sphere.distributions.base import PoseDistribution, check_temperature
 from image2sphere.precision import constant_cache
 from image2sphere.so3.rotations import proper_singular_values, proper_svd, quaternion_to_matrix
 
@@ -219,6 +219,12 @@ class MatrixFisher(PoseDistribution):
         raise ValueError(
             f"rotations must have shape (K, 3, 3) or (B={self.batch_size}, K, 3, 3), got {tuple(rotations.shape)}"
         )
+
+    def tempered(self, temperature: float) -> MatrixFisher:
+        """``p ** (1 / temperature)``, renormalised: the matrix Fisher family with ``F / temperature``
+        (its closed-form normaliser, mode and sampler stay exact)."""
+        temperature = check_temperature(temperature)
+        return self if temperature == 1.0 else MatrixFisher(self.F / temperature)
 
     def exact_log_normalizer(self) -> torch.Tensor:
         """``log c(F)`` ``(B,)`` w.r.t. the Haar measure of volume ``pi^2``; differentiable."""

@@ -52,6 +52,8 @@ from lightning.pytorch.plugins.io import TorchCheckpointIO
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import OmegaConf
 
+from image2sphere.recalibration import Recalibration
+
 __all__ = [
     "AtomicCheckpointIO",
     "CheckpointError",
@@ -335,4 +337,6 @@ def build_module(ckpt: dict, path: str | Path, **overrides):
     module.load_state_dict(state)
     module.class_names = list(ckpt["class_names"]) if ckpt.get("class_names") else None
     module.run_config = ckpt["run_config"]
+    if ckpt.get("recalibration") is not None:
+        module.recalibration = Recalibration.from_dict(ckpt["recalibration"], str(path))
     return module.eval()

@@ -6,7 +6,10 @@ Every test image is scored. The run directory receives ``metrics.json``, ``metri
 per-class table), ``reliability.png`` (the calibration of a density method: HDR coverage against the
 nominal mass, per class and the class mean) and ``plots/test_<i>.png`` (the distributions of the first
 ``plots`` test images, ground truth drawn as rings); the metrics and the reliability diagram also go
-to the configured logger.
+to the configured logger. The recalibration stored in the checkpoint is applied unless
+``recalibration=off`` (the metrics then have a before and an after); ``recalibration=fit`` fits it on
+the dataset's validation split first and writes the checkpoint with it to ``<name>.recalibrated.ckpt``
+beside the original (docs/evaluation.md#recalibration).
 """
 
 from __future__ import annotations
@@ -22,12 +25,12 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from image2sphere.reporting.metrics_table import format_metrics_markdown, format_metrics_table
-from image2sphere.training.checkpoint import CheckpointError, build_module, load_checkpoint
+from image2sphere.training.checkpoint import AtomicCheckpointIO, CheckpointError, build_module, load_checkpoint
 from image2sphere.training.cluster import ddp_children_run_this_job
 from image2sphere.training.pipeline import finish_loggers, instantiate_list
 from image2sphere.training.run_config import check_eval_config, command_line, override_key
 
-__all__ = ["evaluate"]
+__all__ = ["evaluate", "recalibrated_path"]
 
 log = logging.getLogger(__name__)
 
@@ -91,8 +94,19 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
             f"the model takes the class as input and was trained with classes {trained}; the dataset has {names}"
         )
     module.class_names = names or trained
+    recalibration = cfg.get("recalibration", "auto")
+    target = recalibrated_path(cfg.ckpt_path)
+    if recalibration == "fit" and target.exists():
+        raise FileExistsError(
+            f"{target} already exists (a recalibration fitted earlier): evaluate it with ckpt_path={target}, "
+            "or move it away to fit again"
+        )
     loggers = instantiate_list(cfg.get("logger"), "logger")
     trainer: pl.Trainer = instantiate(cfg.trainer, logger=loggers or False, callbacks=[], enable_checkpointing=False)
+    if recalibration == "off":
+        module.recalibration = None
+    elif recalibration == "fit":
+        _fit_and_store_recalibration(module, datamodule, trainer, ckpt, target)
     start = time.perf_counter()
     with ddp_children_run_this_job():  # in a multirun job, the other DDP ranks start as this job
         trainer.test(model=module, datamodule=datamodule)
@@ -118,6 +132,28 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
         print(f"Run directory: {output_dir}\n")
     finish_loggers(loggers)
     return metrics
+
+
+def recalibrated_path(ckpt_path: str | Path) -> Path:
+    """Where ``recalibration=fit`` writes the checkpoint with its temperature: ``<name>.recalibrated.ckpt``
+    beside the original."""
+    path = Path(ckpt_path)
+    return path.with_name(f"{path.stem}.recalibrated.ckpt")
+
+
+def _fit_and_store_recalibration(module, datamodule, trainer: pl.Trainer, ckpt: dict, target: Path) -> None:
+    """Fit the temperature on the dataset's validation split and write the checkpoint with it to
+    ``target`` (a new file; the original is not touched)."""
+    datamodule.setup("fit")
+    module.to(trainer.strategy.root_device)
+    fitted = module.fit_recalibration(datamodule.val_dataloader())
+    if fitted is None:
+        log.info("Recalibration: the method predicts a point, not a distribution; nothing to fit")
+        return
+    log.info("Recalibration: %s", fitted.describe())
+    if trainer.is_global_zero:
+        AtomicCheckpointIO().save_checkpoint({**ckpt, "recalibration": fitted.to_dict()}, target)
+        log.info("The checkpoint with its recalibration: %s", target)
 
 
 def _plot_reliability(metrics: dict, class_names: list[str], title: str, path: Path, loggers: list) -> None:

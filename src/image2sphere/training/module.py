@@ -21,6 +21,12 @@ Conventions
   :attr:`test_metrics` and logged as ``test/<metric>[/<class>]``. The test also scores the calibration
   of a density (HDR coverage and ECE), from the same grid sweep as the log likelihood; its random
   tie-break is a fixed draw per (image, target) pair, seeded by the image's class and dataset index.
+* Recalibration (:mod:`image2sphere.recalibration`): :meth:`PoseEstimationModule.fit_recalibration`
+  fits one temperature on the validation split after training; it is kept in :attr:`recalibration`
+  and in checkpoints (``checkpoint["recalibration"]``). The test then also reports the log likelihood,
+  HDR coverage and ECE of the recalibrated distributions (``<metric>_calibrated``); every other metric
+  is the model's own. :meth:`distribution` is the distribution to show and use: recalibrated unless
+  :attr:`use_recalibration` is False.
 """
 
 from __future__ import annotations
@@ -50,6 +56,7 @@ from image2sphere.metrics import (
 )
 from image2sphere.nn.base import method_of
 from image2sphere.precision import float32_region
+from image2sphere.recalibration import Recalibration, ScoredPairs, fit_temperature
 from image2sphere.so3.grid import (
     MAX_DENSE_LEVEL,
     MAX_STREAMED_LEVEL,
@@ -133,6 +140,8 @@ class PoseEstimationModule(pl.LightningModule):
         self._seed_base = torch.initial_seed()
         self._unindexed = 0  # test images without a dataset index seen so far (their tie-break seeds)
         self.run_config: dict | None = None  # the resolved Hydra config, stored in checkpoints
+        self.recalibration: Recalibration | None = None  # the fitted temperature (fit_recalibration)
+        self.use_recalibration = True  # distribution() applies it
 
     @staticmethod
     def check_grid_levels(prefix: str = "model.", **levels: int) -> None:
@@ -153,6 +162,14 @@ class PoseEstimationModule(pl.LightningModule):
         if getattr(self.net, "num_classes", 0):
             return self.net(images, class_index)
         return self.net(images)
+
+    def distribution(self, output: torch.Tensor):
+        """The distribution of the network's ``output`` to show and use: tempered by the fitted
+        temperature (:attr:`recalibration`) unless :attr:`use_recalibration` is False or none was fitted."""
+        dist = self.output_distribution(output)
+        if self.recalibration is None or not self.use_recalibration or not dist.has_density:
+            return dist
+        return dist.tempered(self.recalibration.temperature)
 
     def _count_skipped(self, batch: dict | None, stage: str) -> bool:
         """Count the corrupt images left out of ``batch``; False when nothing is left of it."""
@@ -207,9 +224,14 @@ class PoseEstimationModule(pl.LightningModule):
             out["loss"] = self.method_loss(output, targets[:, 0], level)
             return out
         if calibration:  # one sweep: log normaliser, argmax, log density and HDR level of every pair
-            pairs = density_pairs(dist, targets, mask, level, self._tie_break(out, mask.shape[1]))
+            u = self._tie_break(out, mask.shape[1])
+            pairs = density_pairs(dist, targets, mask, level, u)
             ll, argmax = pairs.log_density, pairs.argmax  # [B, M], NaN on padding; [B]
             out["hdr_counts"] = hdr_coverage_counts(pairs.hdr_level, mask)  # [B, len(HDR_LEVELS)]
+            if self.recalibration is not None:  # the same pairs under the recalibrated distribution
+                tempered = density_pairs(dist.tempered(self.recalibration.temperature), targets, mask, level, u)
+                out["ll_calibrated_sum"] = tempered.log_density.to(targets.device).masked_fill(~mask, 0.0).sum(1)
+                out["hdr_counts_calibrated"] = hdr_coverage_counts(tempered.hdr_level, mask)
         else:
             lse, _, argmax = dist.grid_logsumexp_and_max(level)  # [B], [B], [B]
             ll = log_likelihood_pairs(dist, targets, mask, level, log_normalizer=lse)  # [B, M], NaN on padding
@@ -264,6 +286,19 @@ class PoseEstimationModule(pl.LightningModule):
             ll_exact_sum=records.get("ll_exact_sum"),
             hdr_counts=records.get("hdr_counts"),
         )
+        if "ll_calibrated_sum" in records:  # the recalibrated distributions' density metrics
+            calibrated = summarize_pose_metrics(
+                records["class_index"],
+                names,
+                ll_sum=records["ll_calibrated_sum"],
+                ll_count=records["ll_count"],
+                hdr_counts=records["hdr_counts_calibrated"],
+            )
+            for key, value in calibrated.items():
+                metric, _, name = key.partition("/")
+                if metric != "n_images":
+                    metrics[f"{metric}_calibrated" + (f"/{name}" if name else "")] = value
+            metrics["temperature"] = self.recalibration.temperature
         metrics["loss"] = float(records["loss"].double().mean())
         return metrics
 
@@ -325,6 +360,50 @@ class PoseEstimationModule(pl.LightningModule):
             self.test_metrics["skipped_images"] = float(self.skipped_images["test"])
         self.log_dict({f"test/{k}": v for k, v in self.test_metrics.items()}, sync_dist=False)
 
+    # ------------------------------------------------------------------ recalibration
+    @torch.no_grad()
+    @float32_region
+    def fit_recalibration(self, dataloader, level: int | None = None, split: str = "val") -> Recalibration | None:
+        """Fit the temperature on ``dataloader``'s images (the validation split) and keep it in
+        :attr:`recalibration` (:func:`~image2sphere.recalibration.fit_temperature`); ``None`` for a point
+        regressor (nothing to recalibrate). ``level``: the grid it is scored on (default: the test's,
+        ``eval_grid_level``). In a distributed run each process scores its share and the sums are added."""
+        level = self.hparams.eval_grid_level if level is None else level
+        was_training = self.training
+        self.eval()
+        batches, n_images = [], 0
+        try:
+            for batch in dataloader:
+                if batch is None:
+                    continue
+                batch = self.transfer_batch_to_device(batch, self.device, 0)
+                output = self(batch["image"], batch.get("class_index"))
+                dist = self.output_distribution(output)
+                if not dist.has_density:
+                    return None
+                targets, mask = batch["rotations"], batch["mask"]
+                mask = check_targets(targets, mask, dist.batch_size)
+                index = batch.get("index", torch.full_like(batch["class_index"], -1))
+                seeds = [stable_seed("recalibration", c, i) for c, i in zip(batch["class_index"].tolist(),
+                                                                            index.tolist(), strict=True)]  # fmt: skip
+                batches.append(ScoredPairs(dist, targets, mask, tie_break_uniforms(seeds, mask.shape[1])))
+                n_images += len(targets)
+        finally:
+            self.train(was_training)
+        trainer = self._trainer
+        reduce = None
+        if trainer is not None and trainer.world_size > 1 and torch.distributed.is_initialized():
+            reduce = self._sum_over_processes
+        if not batches and reduce is None:
+            raise ValueError(f"the {split} split has no image to fit the recalibration on")
+        self.recalibration = fit_temperature(batches, level, split=split, n_images=n_images, reduce=reduce)
+        return self.recalibration
+
+    def _sum_over_processes(self, totals: torch.Tensor) -> torch.Tensor:
+        totals = totals.to(self.device)
+        torch.distributed.all_reduce(totals)
+        return totals
+
     # ------------------------------------------------------------------ optimisation
     def configure_optimizers(self):
         optimizer = self.optimizer_factory(params=self.trainer.model.parameters())
@@ -339,6 +418,8 @@ class PoseEstimationModule(pl.LightningModule):
     # ------------------------------------------------------------------ checkpoints
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         checkpoint["class_names"] = self.class_names
+        if self.recalibration is not None:
+            checkpoint["recalibration"] = self.recalibration.to_dict()
         if self.run_config is not None:
             checkpoint["run_config"] = self.run_config
 
@@ -348,6 +429,7 @@ class PoseEstimationModule(pl.LightningModule):
 
     # ------------------------------------------------------------------ exact resume
     def on_fit_start(self) -> None:
+        self.recalibration = None  # a temperature fitted to other weights does not apply (fitted again after)
         self._seed_base = torch.initial_seed()  # the run's seed (seed_everything), before any reseeding
 
     def on_train_batch_start(self, batch: dict, batch_idx: int) -> None:

@@ -3,7 +3,9 @@
 The run directory (``paths.output_dir``, one per run, created by Hydra) receives
 ``checkpoints/{last,epoch=*}.ckpt``, the logger's files (``wandb/``, ``csv/``, ``tensorboard/``),
 ``metrics.json`` and ``.hydra/`` (the composed config). Nothing already there is overwritten:
-a run refuses to start in a directory that already holds checkpoints or metrics.
+a run refuses to start in a directory that already holds checkpoints or metrics. After training, the
+recalibration's temperature (``recalibration=fit``, docs/evaluation.md#recalibration) is fitted on the
+validation split and added to this run's own ``last.ckpt`` (rewritten atomically).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from image2sphere.reporting.metrics_table import format_metrics_table
-from image2sphere.training.checkpoint import TrainingInterrupted, load_checkpoint
+from image2sphere.training.checkpoint import AtomicCheckpointIO, TrainingInterrupted, load_checkpoint
 from image2sphere.training.cluster import (
     ddp_children_run_this_job,
     is_secondary_rank,
@@ -148,6 +150,10 @@ def _train(cfg: DictConfig) -> dict[str, float]:
         if trainer.interrupted:
             log.warning("Training was interrupted; skipping the test")
             return {}
+        if cfg.get("recalibration", "fit") == "fit" and not cfg.trainer.get("fast_dev_run"):
+            start = time.perf_counter()
+            _fit_recalibration(trainer, model, datamodule, output_dir)
+            timings["recalibration_seconds"] = time.perf_counter() - start
     metrics: dict[str, float] = {}
     if cfg.test:
         if not cfg.train and ckpt_path is None:
@@ -166,6 +172,22 @@ def _train(cfg: DictConfig) -> dict[str, float]:
             print(f"Run directory: {output_dir}\n")
     finish_loggers(loggers)
     return {**metrics, **timings}
+
+
+def _fit_recalibration(trainer: pl.Trainer, model, datamodule, output_dir: Path) -> None:
+    """Fit the temperature on the validation split (on the trainer's device) and store it in this run's
+    ``last.ckpt``, rewritten atomically (rank 0)."""
+    model.to(trainer.strategy.root_device)
+    fitted = model.fit_recalibration(datamodule.val_dataloader())
+    if fitted is None:
+        log.info("Recalibration: the method predicts a point, not a distribution; nothing to fit")
+        return
+    log.info("Recalibration: %s", fitted.describe())
+    last = output_dir / "checkpoints" / "last.ckpt"
+    if trainer.is_global_zero and last.is_file():
+        checkpoint = torch.load(last, map_location="cpu", weights_only=True)
+        checkpoint["recalibration"] = fitted.to_dict()
+        AtomicCheckpointIO().save_checkpoint(checkpoint, last)
 
 
 def _trainer_config(trainer: DictConfig) -> DictConfig:

@@ -35,6 +35,7 @@ from image2sphere.data.workers import check_num_workers
 
 __all__ = [
     "RENAMED_KEYS",
+    "check_choice",
     "check_eval_config",
     "check_predict_config",
     "check_train_config",
@@ -101,6 +102,15 @@ def _check_levels(cfg: DictConfig, keys: list[str]) -> None:
     PoseEstimationModule.check_grid_levels(prefix="", **levels)
 
 
+def check_choice(cfg: DictConfig, key: str, choices: tuple[str, ...], default: str) -> str:
+    """``cfg[key]`` (``default`` when absent, e.g. in a config stored before the key existed) if it is one of
+    ``choices``, else ``ValueError`` naming the key and the choices."""
+    value = cfg.get(key, default)
+    if value not in choices:
+        raise ValueError(f"{key} must be one of {', '.join(choices)}, got {value!r}")
+    return value
+
+
 def check_train_config(cfg: DictConfig) -> None:
     """Refuse invalid values of a training config (``python -m src.train``) before any work starts; renamed
     keys given under their old names are moved to the new ones (:data:`RENAMED_KEYS`)."""
@@ -111,6 +121,7 @@ def check_train_config(cfg: DictConfig) -> None:
     for key in ("train", "test"):
         if not isinstance(cfg.get(key), bool):
             raise ValueError(f"{key} must be true or false, got {cfg.get(key)!r}")
+    check_choice(cfg, "recalibration", ("fit", "off"), default="fit")
     _int_at_least(cfg, "lmax", 0)
     _check_levels(
         cfg,
@@ -145,12 +156,14 @@ def check_eval_config(cfg: DictConfig) -> None:
     _int_at_least(cfg, "plots", 0)
     if not isinstance(cfg.get("refine"), bool):
         raise ValueError(f"refine must be true or false, got {cfg.get('refine')!r}")
+    check_choice(cfg, "recalibration", ("auto", "fit", "off"), default="auto")
 
 
 def check_predict_config(cfg: DictConfig) -> None:
     """Move renamed keys of a prediction config (``python -m src.predict``) to their new names
     (:data:`RENAMED_KEYS`); :func:`image2sphere.inference.predict` checks the values."""
     _apply_renamed_keys(cfg, "predict")
+    check_choice(cfg, "recalibration", ("auto", "off"), default="auto")
 
 
 # ---------------------------------------------------------------------------------------------- resume

@@ -1,0 +1,224 @@
+"""Recalibration of a trained model by one temperature (docs/evaluation.md#recalibration).
+
+Conventions
+-----------
+* The recalibrated distribution of an image is its predicted density raised to the power ``1 / T``
+  and renormalised (:meth:`~image2sphere.distributions.base.PoseDistribution.tempered`), with one
+  temperature ``T > 0`` for the whole run: ``T < 1`` sharpens every distribution, ``T > 1`` broadens
+  it. The order of the rotations by density does not change, so neither do the mode, the point
+  estimate's errors and accuracies, nor which rotations a region of given mass starts from; what
+  changes is how much mass every region holds, i.e. the log likelihood, the spread and the calibration.
+* ``T`` is fitted on the validation split: the value in ``[TEMPERATURE_BOUNDS]`` that maximises the
+  mean log likelihood of every (image, equivalent rotation) pair of that split, read as the test reads
+  it (the grid point nearest each rotation on the grid of ``grid_level``). The log likelihood is a proper
+  scoring rule: it is maximised by the temperature whose regions hold the mass they claim. The
+  search is a bounded one-dimensional search on ``log T`` (scipy's ``minimize_scalar``) over the grid
+  values of every validation image, computed once (at most ``MAX_FIT_BYTES``: a coarser grid is used for a
+  split too large for the test's grid, :func:`fit_level`); ``T = 1`` is kept when nothing beats it.
+* The fit also reports the validation ECE before and after (pooled over the split's pairs, the
+  tie-break uniforms drawn per image as the test draws them).
+* In a distributed run every process scores its own share of the validation split and the sums are
+  added up across processes (``reduce``), so every process follows the same search and finds the
+  same ``T``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, dataclass
+from typing import NamedTuple
+
+import torch
+
+from image2sphere.checks import check_int, check_number
+from image2sphere.distributions.base import LOG_UNIFORM_DENSITY, PoseDistribution, check_temperature
+from image2sphere.metrics import HDR_LEVELS, check_targets, density_pairs, fill_padding, hdr_coverage_counts
+from image2sphere.so3.grid import MAX_DENSE_LEVEL, check_level, so3_grid_size, so3_healpix_nearest_index
+
+__all__ = [
+    "TEMPERATURE_BOUNDS",
+    "Recalibration",
+    "ScoredPairs",
+    "fit_level",
+    "fit_temperature",
+    "score_temperature",
+]
+
+#: the temperatures searched: from 50 times sharper to 50 times broader
+TEMPERATURE_BOUNDS = (0.02, 50.0)
+#: the most memory the fit's grid values may take (float64, every validation image at once)
+MAX_FIT_BYTES = 2 * 2**30
+
+
+class ScoredPairs(NamedTuple):
+    """One validation batch: its distributions, targets ``(B, M, 3, 3)``, mask ``(B, M)`` and the
+    tie-break uniforms ``(B, M)`` of its HDR levels (:func:`~image2sphere.metrics.tie_break_uniforms`)."""
+
+    dist: PoseDistribution
+    targets: torch.Tensor
+    mask: torch.Tensor
+    u: torch.Tensor
+
+
+@dataclass(frozen=True)
+class Recalibration:
+    """A fitted temperature and what it did on the split it was fitted on (stored in checkpoints as a
+    plain dict, :meth:`to_dict`)."""
+
+    temperature: float
+    grid_level: int
+    split: str
+    n_images: int
+    n_pairs: int
+    log_likelihood_before: float
+    log_likelihood_after: float
+    ece_before: float
+    ece_after: float
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict, source: str = "the checkpoint") -> Recalibration:
+        """Back from :meth:`to_dict`; ``ValueError`` naming ``source`` when a field is missing or wrong."""
+        if not isinstance(data, dict):
+            raise ValueError(f"the recalibration stored in {source} is not a dict: {type(data).__name__}")
+        missing = sorted(set(cls.__dataclass_fields__) - set(data))
+        if missing:
+            raise ValueError(f"the recalibration stored in {source} lacks {', '.join(missing)}")
+        fields = {k: data[k] for k in cls.__dataclass_fields__}
+        try:
+            check_temperature(fields["temperature"], f"the temperature stored in {source}")
+            check_level(fields["grid_level"], name=f"the grid level stored in {source}")
+        except ValueError as e:
+            raise ValueError(f"{e}; fit it again with recalibration=fit") from None
+        return cls(**fields)
+
+    def describe(self) -> str:
+        """One line for the log."""
+        return (
+            f"temperature {self.temperature:.4g} fitted on the {self.split} split ({self.n_images} images, "
+            f"{self.n_pairs} pairs, grid level {self.grid_level}): log likelihood {self.log_likelihood_before:.3f} "
+            f"-> {self.log_likelihood_after:.3f}, ECE {self.ece_before:.3f} -> {self.ece_after:.3f}"
+        )
+
+
+def score_temperature(
+    batches: Iterable[ScoredPairs],
+    temperature: float,
+    level: int,
+    reduce: Callable[[torch.Tensor], torch.Tensor] | None = None,
+) -> tuple[float, float, int]:
+    """``(mean log likelihood, ECE, number of pairs)`` of the batches' distributions at ``temperature``,
+    pooled over every real (image, target) pair, on the grid of ``level`` (one streamed sweep per batch,
+    :func:`~image2sphere.metrics.density_pairs`, as the test scores them). ``reduce`` sums a float64 vector
+    across processes (identity when ``None``)."""
+    temperature = check_temperature(temperature)
+    totals = torch.zeros(2 + len(HDR_LEVELS), dtype=torch.float64)  # [ll sum, pairs, counts per level]
+    for batch in batches:
+        dist = batch.dist.tempered(temperature)
+        pairs = density_pairs(dist, batch.targets, batch.mask, level, batch.u)
+        mask = batch.mask.to(pairs.log_density.device)
+        totals[0] += pairs.log_density.double().masked_fill(~mask, 0.0).sum().cpu()
+        totals[1] += mask.sum().cpu()
+        totals[2:] += hdr_coverage_counts(pairs.hdr_level, mask).sum(0).double().cpu()
+    if reduce is not None:
+        totals = reduce(totals).double().cpu()
+    n = int(totals[1])
+    if n == 0:
+        raise ValueError("no validation pair to fit a temperature on: the validation split is empty")
+    coverage = totals[2:] / n
+    alphas = torch.tensor(HDR_LEVELS, dtype=torch.float64)
+    return float(totals[0] / n), float((coverage - alphas).abs().mean()), n
+
+
+class _GridValues(NamedTuple):
+    """One batch's unnormalised log density on the whole grid ``(B, N)`` and at each real pair's nearest
+    grid point ``(B, M)`` (0 on padding), with the number of real pairs per image ``(B,)``."""
+
+    grid: torch.Tensor
+    at_pairs: torch.Tensor
+    pairs: torch.Tensor
+
+
+def _grid_values(batch: ScoredPairs, level: int) -> _GridValues:
+    mask = check_targets(batch.targets, batch.mask, batch.dist.batch_size)
+    grid = batch.dist.grid_log_density(level).double()  # [B, N]
+    index = so3_healpix_nearest_index(fill_padding(batch.targets, mask), level).to(grid.device)  # [B, M]
+    mask = mask.to(grid.device)
+    return _GridValues(grid, grid.gather(1, index).masked_fill(~mask, 0.0), mask.sum(1).double())
+
+
+def fit_level(level: int, n_images: int) -> int:
+    """The grid the fit reads: ``level``, or the finest coarser one whose values for ``n_images`` images fit
+    in :data:`MAX_FIT_BYTES` (the values are kept for the whole search)."""
+    level = check_level(level, name="the recalibration grid level", max_level=MAX_DENSE_LEVEL)
+    while level > 0 and n_images * math.prod(so3_grid_size(level)) * 8 > MAX_FIT_BYTES:
+        level -= 1
+    return level
+
+
+def fit_temperature(
+    batches: list[ScoredPairs],
+    level: int,
+    split: str = "val",
+    n_images: int | None = None,
+    reduce: Callable[[torch.Tensor], torch.Tensor] | None = None,
+    bounds: tuple[float, float] = TEMPERATURE_BOUNDS,
+    xatol: float = 0.01,
+) -> Recalibration:
+    """The temperature that maximises the batches' mean log likelihood on the grid of ``level`` (module
+    docstring; :func:`fit_level` picks a coarser grid where the values would not fit in memory).
+
+    Each distribution's values on the grid are computed once; the search then only rescales them (the
+    log likelihood of a pair at temperature ``T`` is ``v / T - logsumexp(grid / T) + log N - log(pi^2)``).
+    ``xatol``: the search's tolerance on ``log T`` (0.01: T to within 1 %). The ECE before and after is
+    then scored by two streamed sweeps (:func:`score_temperature`).
+    """
+    from scipy.optimize import minimize_scalar
+
+    images = n_images if n_images is not None else sum(len(b.targets) for b in batches)
+    level = fit_level(level, images)
+    low, high = (check_temperature(b, "a temperature bound") for b in bounds)
+    if not low < 1.0 < high:
+        raise ValueError(f"the temperature bounds must enclose 1, got {bounds}")
+    check_number("xatol", xatol)
+    values = [_grid_values(b, level) for b in batches]
+    constant = math.log(math.prod(so3_grid_size(level))) + LOG_UNIFORM_DENSITY
+
+    def mean_log_likelihood(temperature: float) -> float:
+        totals = torch.zeros(2, dtype=torch.float64)  # [ll sum, pairs]
+        for v in values:
+            lse = torch.logsumexp(v.grid / temperature, dim=1)  # [B]
+            totals[0] += (v.at_pairs.sum(1) / temperature - v.pairs * lse).sum().cpu()
+            totals[1] += v.pairs.sum().cpu()
+        if reduce is not None:
+            totals = reduce(totals).double().cpu()
+        if totals[1] == 0:
+            raise ValueError("no validation pair to fit a temperature on: the validation split is empty")
+        return float(totals[0] / totals[1]) + constant
+
+    result = minimize_scalar(
+        lambda x: -mean_log_likelihood(math.exp(x)),
+        bounds=(math.log(low), math.log(high)),
+        method="bounded",
+        options={"xatol": xatol},
+    )
+    temperature = float(math.exp(result.x))
+    if not mean_log_likelihood(temperature) > mean_log_likelihood(1.0):  # nothing beats the model as it is
+        temperature = 1.0
+    values.clear()  # the grid values are not needed any more
+    before = score_temperature(batches, 1.0, level, reduce)
+    after = score_temperature(batches, temperature, level, reduce) if temperature != 1.0 else before
+    return Recalibration(
+        temperature=temperature,
+        grid_level=level,
+        split=split,
+        n_images=check_int("n_images", images),
+        n_pairs=before[2],
+        log_likelihood_before=before[0],
+        log_likelihood_after=after[0],
+        ece_before=before[1],
+        ece_after=after[1],
+    )

@@ -1,0 +1,205 @@
+"""Recalibration by one temperature (image2sphere.recalibration, docs/evaluation.md#recalibration).
+
+Quick tier: tempering against a dense reference for every kind of family (the Fourier family's own
+override, the matrix Fisher family's closed form, the generic grid tempering), its invariants (mode and
+order unchanged, composition, temperature 1), the checks of bad temperatures and stored fits, and the
+fit recovering a known temperature from data drawn at that temperature. Whole-run behaviour (the fit
+after training, the checkpoint, eval's fit/off, predict) is in the slow tests at the end, on the tiny run.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from conftest import haar_rotations, read_metrics, run_module
+from image2sphere.distributions.base import PointEstimate, TemperedDistribution, check_temperature
+from image2sphere.distributions.bingham import Bingham
+from image2sphere.distributions.fourier import SO3Distribution
+from image2sphere.distributions.matrix_fisher import MatrixFisher
+from image2sphere.metrics import tie_break_uniforms
+from image2sphere.recalibration import Recalibration, ScoredPairs, fit_temperature, score_temperature
+from image2sphere.so3.wigner import n_so3_coeffs
+
+LEVEL = 2
+
+
+def fourier(seed: int = 0, batch: int = 3, lmax: int = 4, scale: float = 0.4) -> SO3Distribution:
+    generator = torch.Generator().manual_seed(seed)
+    return SO3Distribution(scale * torch.randn(batch, n_so3_coeffs(lmax), generator=generator, dtype=torch.float64), lmax)
+
+
+def fisher(seed: int = 0, batch: int = 3, scale: float = 3.0) -> MatrixFisher:
+    generator = torch.Generator().manual_seed(seed)
+    return MatrixFisher(scale * torch.randn(batch, 3, 3, generator=generator, dtype=torch.float64))
+
+
+def bingham(seed: int = 0, batch: int = 2) -> Bingham:
+    generator = torch.Generator().manual_seed(seed)
+    return Bingham.from_output(torch.randn(batch, 8, generator=generator, dtype=torch.float64), num_components=1)
+
+
+FAMILIES = {"fourier": fourier, "matrix_fisher": fisher, "bingham (generic)": bingham}
+
+
+# ---------------------------------------------------------------------------------------------- tempering
+@pytest.mark.parametrize("family", FAMILIES)
+@pytest.mark.parametrize("temperature", [0.3, 2.5])
+def test_tempered_grid_density_is_the_power_of_the_density(family, temperature):
+    """On the grid, the tempered log probabilities are log_softmax(log p / T) of the untempered values,
+    computed densely here from the base family's own grid values."""
+    dist = FAMILIES[family]()
+    reference = torch.log_softmax(dist.grid_log_density(LEVEL) / temperature, dim=1)  # [B, N]
+    tempered = dist.tempered(temperature)
+    assert torch.allclose(tempered.log_prob_grid(LEVEL), reference, atol=1e-9)
+    # the mode and the order of the rotations stay: the argmax is the same grid point
+    assert torch.equal(tempered.grid_logsumexp_and_max(LEVEL)[2], dist.grid_logsumexp_and_max(LEVEL)[2])
+
+
+def test_family_overrides_stay_in_their_family():
+    """The Fourier family scales its coefficients and the matrix Fisher family its matrix (exact), the
+    others fall back to the generic grid tempering, whose values equal the overrides'."""
+    d = fourier()
+    assert type(d.tempered(0.5)) is SO3Distribution
+    assert torch.allclose(d.tempered(0.5).coeffs, d.coeffs * 2)
+    f = fisher()
+    assert type(f.tempered(0.5)) is MatrixFisher and f.tempered(0.5).has_exact_density
+    assert isinstance(bingham().tempered(0.5), TemperedDistribution)
+    R = haar_rotations(6, seed=4)
+    for dist in (d, f):
+        generic = TemperedDistribution(dist, 0.5)
+        assert torch.allclose(dist.tempered(0.5).log_density(R, LEVEL), generic.log_density(R, LEVEL), atol=1e-9)
+
+
+def test_tempered_matrix_fisher_is_normalised():
+    """The closed-form density of F / T integrates to 1 (volume pi^2): the mean of exp(log density) over
+    the equivolumetric level-4 grid, times pi^2, is 1."""
+    f = fisher(scale=1.5).tempered(0.7)
+    from image2sphere.so3.grid import so3_healpix_grid
+
+    grid = so3_healpix_grid(4).double()  # [N, 3, 3]
+    density = f.exact_log_density(grid).exp()  # [B, N]
+    assert torch.allclose(density.mean(1) * math.pi**2, torch.ones(3, dtype=torch.float64), atol=2e-3)
+
+
+def test_temperatures_compose_and_one_is_the_identity():
+    b = bingham()
+    assert b.tempered(1.0) is b and b.tempered(1) is b
+    twice = b.tempered(0.5).tempered(3.0)
+    assert isinstance(twice, TemperedDistribution) and twice.base is b and twice.temperature == pytest.approx(1.5)
+    assert torch.allclose(twice.log_prob_grid(LEVEL), b.tempered(1.5).log_prob_grid(LEVEL), atol=1e-12)
+
+
+@pytest.mark.parametrize("bad", [0, -1.0, math.nan, math.inf, True, "2", None])
+def test_bad_temperatures_are_refused(bad):
+    with pytest.raises(ValueError, match="temperature"):
+        check_temperature(bad)
+    with pytest.raises(ValueError, match="temperature"):
+        fourier().tempered(bad)
+
+
+def test_a_point_estimate_is_left_as_it_is():
+    p = PointEstimate(haar_rotations(2, seed=1))
+    assert p.tempered(0.3) is p
+
+
+def test_a_stored_recalibration_is_checked():
+    good = Recalibration(0.5, 4, "val", 10, 12, 1.0, 1.2, 0.2, 0.01)
+    assert Recalibration.from_dict(good.to_dict()) == good
+    with pytest.raises(ValueError, match="lacks temperature"):
+        Recalibration.from_dict({k: v for k, v in good.to_dict().items() if k != "temperature"}, "x.ckpt")
+    with pytest.raises(ValueError, match="x.ckpt.*> 0|> 0.*x.ckpt"):
+        Recalibration.from_dict({**good.to_dict(), "temperature": -2.0}, "x.ckpt")
+
+
+# ---------------------------------------------------------------------------------------------- the fit
+def _drawn_at(temperature: float, n: int = 240, seed: int = 0) -> list[ScoredPairs]:
+    """Matrix Fisher distributions and one truth per image drawn exactly from the distribution at
+    ``temperature``: the temperature that recalibrates the untempered model is ``temperature``."""
+    model = fisher(seed=seed, batch=n, scale=2.0)
+    generator = torch.Generator().manual_seed(seed + 1)
+    truths = model.tempered(temperature).exact_sample(1, generator=generator)  # [n, 1, 3, 3]
+    mask = torch.ones(n, 1, dtype=torch.bool)
+    return [ScoredPairs(model, truths, mask, tie_break_uniforms(range(n), 1))]
+
+
+@pytest.mark.parametrize("true_temperature", [0.5, 2.0])
+def test_the_fit_recovers_the_temperature_the_data_were_drawn_at(true_temperature):
+    """Maximum likelihood over 240 images recovers the temperature the truths were drawn at (to 20 %),
+    the log likelihood rises and the calibration error falls to that of a calibrated model."""
+    batches = _drawn_at(true_temperature)
+    fit = fit_temperature(batches, level=3)
+    assert fit.temperature == pytest.approx(true_temperature, rel=0.2)
+    assert fit.log_likelihood_after > fit.log_likelihood_before
+    assert fit.ece_before > 0.1 and fit.ece_after < 0.06
+    assert (fit.n_images, fit.n_pairs, fit.grid_level, fit.split) == (240, 240, 3, "val")
+    # the reported numbers are those of the data at the fitted temperature
+    ll, ece, n = score_temperature(batches, fit.temperature, 3)
+    assert (ll, ece, n) == (pytest.approx(fit.log_likelihood_after), pytest.approx(fit.ece_after), 240)
+
+
+def test_a_calibrated_model_keeps_a_temperature_near_one():
+    fit = fit_temperature(_drawn_at(1.0, seed=3), level=3)
+    assert fit.temperature == pytest.approx(1.0, rel=0.2)
+    assert fit.log_likelihood_after >= fit.log_likelihood_before
+
+
+def test_the_fit_sums_over_processes_with_reduce():
+    """``reduce`` sees the pooled sums of this process; doubling them (two processes with the same share)
+    changes nothing in the means, so the same temperature comes out."""
+    batches = _drawn_at(0.5)
+    seen = []
+
+    def twice(totals):
+        seen.append(totals.clone())
+        return 2 * totals
+
+    assert fit_temperature(batches, 3, reduce=twice).temperature == pytest.approx(fit_temperature(batches, 3).temperature)
+    assert seen and all(t[1] == 240 for t in seen)
+
+
+# ---------------------------------------------------------------------------------------------- whole runs
+def test_the_training_run_fits_stores_and_reports_the_recalibration(tiny_run):
+    """The tiny run (recalibration=fit, the default) stored its temperature in last.ckpt and reported the
+    log likelihood and ECE before and after, per class and averaged."""
+    ckpt = torch.load(tiny_run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    fit = Recalibration.from_dict(ckpt["recalibration"])
+    metrics = read_metrics(tiny_run)
+    assert metrics["temperature"] == pytest.approx(fit.temperature)
+    for key in ("log_likelihood_calibrated", "calibration_ece_calibrated", "hdr_coverage_50_calibrated"):
+        assert key in metrics and all(f"{key}/{c}" in metrics for c in ("cube", "cone"))
+    # the accuracies are the model's own: the recalibration changes no ranking
+    assert "acc15_calibrated" not in metrics
+
+
+@pytest.mark.slow
+def test_eval_applies_fits_and_turns_off_the_recalibration(tiny_run, tmp_path):
+    """src.eval: auto reports the stored temperature's metrics; off reports none; fit writes a new
+    checkpoint beside a copy of the original (never replacing one), whose temperature the next eval uses."""
+    import shutil
+
+    ckpt = tmp_path / "last.ckpt"
+    shutil.copy(tiny_run / "checkpoints" / "last.ckpt", ckpt)
+    original = ckpt.read_bytes()
+    base = ["eval_grid_level=3", "plots=0", "logger=none", "trainer.accelerator=cpu", f"ckpt_path={ckpt}"]
+
+    def run_eval(*args):
+        out = tmp_path / f"eval{len(list(tmp_path.glob('eval*')))}"
+        run_module(["python", "-m", "src.eval", *base, *args, f"hydra.run.dir={out}"])
+        return json.loads((out / "metrics.json").read_text())
+
+    auto, off = run_eval(), run_eval("recalibration=off")
+    assert "log_likelihood_calibrated" in auto and "log_likelihood_calibrated" not in off
+    assert auto["log_likelihood"] == pytest.approx(off["log_likelihood"])  # the model's own, both times
+    fitted = run_eval("recalibration=fit")
+    target = tmp_path / "last.recalibrated.ckpt"
+    assert target.is_file() and ckpt.read_bytes() == original
+    stored = torch.load(target, map_location="cpu", weights_only=True)["recalibration"]
+    assert fitted["temperature"] == pytest.approx(stored["temperature"])
+    again = run_module(["python", "-m", "src.eval", *base, "recalibration=fit", f"hydra.run.dir={tmp_path / 'x'}"],
+                       check=False)  # fmt: skip
+    assert again.returncode != 0 and "already exists" in again.stderr + again.stdout
+    assert not (tmp_path / "x" / "metrics.json").exists()

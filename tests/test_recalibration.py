@@ -29,7 +29,9 @@ LEVEL = 2
 
 def fourier(seed: int = 0, batch: int = 3, lmax: int = 4, scale: float = 0.4) -> SO3Distribution:
     generator = torch.Generator().manual_seed(seed)
-    return SO3Distribution(scale * torch.randn(batch, n_so3_coeffs(lmax), generator=generator, dtype=torch.float64), lmax)
+    return SO3Distribution(
+        scale * torch.randn(batch, n_so3_coeffs(lmax), generator=generator, dtype=torch.float64), lmax
+    )
 
 
 def fisher(seed: int = 0, batch: int = 3, scale: float = 3.0) -> MatrixFisher:
@@ -123,7 +125,7 @@ def _drawn_at(temperature: float, n: int = 240, seed: int = 0) -> list[ScoredPai
     generator = torch.Generator().manual_seed(seed + 1)
     truths = model.tempered(temperature).exact_sample(1, generator=generator)  # [n, 1, 3, 3]
     mask = torch.ones(n, 1, dtype=torch.bool)
-    return [ScoredPairs(model, truths, mask, tie_break_uniforms(range(n), 1))]
+    return [ScoredPairs(model, truths, mask, tie_break_uniforms(range(n), 1), torch.zeros(n, dtype=torch.long))]
 
 
 @pytest.mark.parametrize("true_temperature", [0.5, 2.0])
@@ -137,7 +139,7 @@ def test_the_fit_recovers_the_temperature_the_data_were_drawn_at(true_temperatur
     assert fit.ece_before > 0.1 and fit.ece_after < 0.06
     assert (fit.n_images, fit.n_pairs, fit.grid_level, fit.split) == (240, 240, 3, "val")
     # the reported numbers are those of the data at the fitted temperature
-    ll, ece, n = score_temperature(batches, fit.temperature, 3)
+    ll, ece, n = score_temperature(batches, fit.temperature, 3, num_classes=1)
     assert (ll, ece, n) == (pytest.approx(fit.log_likelihood_after), pytest.approx(fit.ece_after), 240)
 
 
@@ -145,6 +147,22 @@ def test_a_calibrated_model_keeps_a_temperature_near_one():
     fit = fit_temperature(_drawn_at(1.0, seed=3), level=3)
     assert fit.temperature == pytest.approx(1.0, rel=0.2)
     assert fit.log_likelihood_after >= fit.log_likelihood_before
+
+
+def test_every_class_weighs_the_same_and_each_gets_its_own_diagnostic_temperature():
+    """Two classes drawn at temperatures 0.5 and 2, the second with far fewer images: the fitted
+    temperature lies between them (the classes weigh the same, not their pairs), and the per-class
+    diagnostic recovers each class's own temperature."""
+    sharp, broad = _drawn_at(0.5, n=240, seed=0)[0], _drawn_at(2.0, n=80, seed=5)[0]
+    batches = [sharp, broad._replace(class_index=torch.ones(80, dtype=torch.long))]
+    fit = fit_temperature(batches, level=3)
+    assert fit.class_temperatures[0] == pytest.approx(0.5, rel=0.2)
+    assert fit.class_temperatures[1] == pytest.approx(2.0, rel=0.25)
+    assert 0.6 < fit.temperature < 1.7
+    assert "each class alone" in fit.describe()
+    # a pooled mean over pairs would follow the 240-image class much more closely
+    pooled = fit_temperature([sharp, broad], level=3)
+    assert pooled.temperature < fit.temperature
 
 
 def test_the_fit_sums_over_processes_with_reduce():
@@ -157,8 +175,10 @@ def test_the_fit_sums_over_processes_with_reduce():
         seen.append(totals.clone())
         return 2 * totals
 
-    assert fit_temperature(batches, 3, reduce=twice).temperature == pytest.approx(fit_temperature(batches, 3).temperature)
-    assert seen and all(t[1] == 240 for t in seen)
+    assert fit_temperature(batches, 3, reduce=twice).temperature == pytest.approx(
+        fit_temperature(batches, 3).temperature
+    )
+    assert seen and all(t[..., 1].sum() == 240 for t in seen)
 
 
 # ---------------------------------------------------------------------------------------------- whole runs

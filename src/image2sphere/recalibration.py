@@ -9,14 +9,18 @@ Conventions
   estimate's errors and accuracies, nor which rotations a region of given mass starts from; what
   changes is how much mass every region holds, i.e. the log likelihood, the spread and the calibration.
 * ``T`` is fitted on the validation split: the value in ``[TEMPERATURE_BOUNDS]`` that maximises the
-  mean log likelihood of every (image, equivalent rotation) pair of that split, read as the test reads
-  it (the grid point nearest each rotation on the grid of ``grid_level``). The log likelihood is a proper
+  validation log likelihood as the test's headline reads it: the mean over every (image, equivalent
+  rotation) pair of a class, at the grid point nearest each rotation on the grid of ``grid_level``,
+  then the mean over classes (so a class with many equivalent rotations, a cone's 360 against a
+  cube's 24, weighs as much as any other). The log likelihood is a proper
   scoring rule: it is maximised by the temperature whose regions hold the mass they claim. The
   search is a bounded one-dimensional search on ``log T`` (scipy's ``minimize_scalar``) over the grid
   values of every validation image, computed once (at most ``MAX_FIT_BYTES``: a coarser grid is used for a
   split too large for the test's grid, :func:`fit_level`); ``T = 1`` is kept when nothing beats it.
-* The fit also reports the validation ECE before and after (pooled over the split's pairs, the
-  tie-break uniforms drawn per image as the test draws them).
+* The fit also reports the validation ECE before and after (the mean over classes, the tie-break
+  uniforms drawn per image as the test draws them), and, as a diagnostic, the temperature each class
+  alone would get (``class_temperatures``): far apart, they say that one temperature cannot calibrate
+  every class.
 * In a distributed run every process scores its own share of the validation split and the sums are
   added up across processes (``reduce``), so every process follows the same search and finds the
   same ``T``.
@@ -52,13 +56,15 @@ MAX_FIT_BYTES = 2 * 2**30
 
 
 class ScoredPairs(NamedTuple):
-    """One validation batch: its distributions, targets ``(B, M, 3, 3)``, mask ``(B, M)`` and the
-    tie-break uniforms ``(B, M)`` of its HDR levels (:func:`~image2sphere.metrics.tie_break_uniforms`)."""
+    """One validation batch: its distributions, targets ``(B, M, 3, 3)``, mask ``(B, M)``, the tie-break
+    uniforms ``(B, M)`` of its HDR levels (:func:`~image2sphere.metrics.tie_break_uniforms`) and the
+    images' classes ``(B,)``."""
 
     dist: PoseDistribution
     targets: torch.Tensor
     mask: torch.Tensor
     u: torch.Tensor
+    class_index: torch.Tensor
 
 
 @dataclass(frozen=True)
@@ -75,6 +81,7 @@ class Recalibration:
     log_likelihood_after: float
     ece_before: float
     ece_after: float
+    class_temperatures: tuple[float, ...] = ()
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -84,10 +91,11 @@ class Recalibration:
         """Back from :meth:`to_dict`; ``ValueError`` naming ``source`` when a field is missing or wrong."""
         if not isinstance(data, dict):
             raise ValueError(f"the recalibration stored in {source} is not a dict: {type(data).__name__}")
-        missing = sorted(set(cls.__dataclass_fields__) - set(data))
+        missing = sorted(set(cls.__dataclass_fields__) - set(data) - {"class_temperatures"})
         if missing:
             raise ValueError(f"the recalibration stored in {source} lacks {', '.join(missing)}")
-        fields = {k: data[k] for k in cls.__dataclass_fields__}
+        fields = {k: data[k] for k in cls.__dataclass_fields__ if k in data}
+        fields["class_temperatures"] = tuple(float(t) for t in fields.get("class_temperatures", ()))
         try:
             check_temperature(fields["temperature"], f"the temperature stored in {source}")
             check_level(fields["grid_level"], name=f"the grid level stored in {source}")
@@ -101,45 +109,64 @@ class Recalibration:
             f"temperature {self.temperature:.4g} fitted on the {self.split} split ({self.n_images} images, "
             f"{self.n_pairs} pairs, grid level {self.grid_level}): log likelihood {self.log_likelihood_before:.3f} "
             f"-> {self.log_likelihood_after:.3f}, ECE {self.ece_before:.3f} -> {self.ece_after:.3f}"
-        )
+            + (f"; each class alone: {', '.join(f'{t:.3g}' for t in self.class_temperatures)}"
+               if len(self.class_temperatures) > 1 else "")
+        )  # fmt: skip
+
+
+def _class_means(sums: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
+    """``sums (C, ...) / counts (C,)`` for the classes with pairs: ``(C', ...)``."""
+    present = counts > 0
+    return sums[present] / counts[present].reshape(-1, *([1] * (sums.ndim - 1)))
 
 
 def score_temperature(
     batches: Iterable[ScoredPairs],
     temperature: float,
     level: int,
+    num_classes: int,
     reduce: Callable[[torch.Tensor], torch.Tensor] | None = None,
 ) -> tuple[float, float, int]:
-    """``(mean log likelihood, ECE, number of pairs)`` of the batches' distributions at ``temperature``,
-    pooled over every real (image, target) pair, on the grid of ``level`` (one streamed sweep per batch,
-    :func:`~image2sphere.metrics.density_pairs`, as the test scores them). ``reduce`` sums a float64 vector
-    across processes (identity when ``None``)."""
+    """``(log likelihood, ECE, number of pairs)`` of the batches' distributions at ``temperature`` on the
+    grid of ``level`` (one streamed sweep per batch, :func:`~image2sphere.metrics.density_pairs`, as the
+    test scores them): each the mean over the classes of the class's value over its real pairs.
+    ``reduce`` sums a float64 tensor across processes (identity when ``None``)."""
     temperature = check_temperature(temperature)
-    totals = torch.zeros(2 + len(HDR_LEVELS), dtype=torch.float64)  # [ll sum, pairs, counts per level]
+    n_levels = len(HDR_LEVELS)
+    totals = torch.zeros(num_classes, 2 + n_levels, dtype=torch.float64)  # [C, (ll sum, pairs, counts)]
     for batch in batches:
         dist = batch.dist.tempered(temperature)
         pairs = density_pairs(dist, batch.targets, batch.mask, level, batch.u)
         mask = batch.mask.to(pairs.log_density.device)
-        totals[0] += pairs.log_density.double().masked_fill(~mask, 0.0).sum().cpu()
-        totals[1] += mask.sum().cpu()
-        totals[2:] += hdr_coverage_counts(pairs.hdr_level, mask).sum(0).double().cpu()
+        rows = torch.cat(
+            [
+                pairs.log_density.double().masked_fill(~mask, 0.0).sum(1, keepdim=True),
+                mask.sum(1, keepdim=True).double(),
+                hdr_coverage_counts(pairs.hdr_level, mask).double(),
+            ],
+            dim=1,
+        ).cpu()  # [B, 2 + L]
+        totals.index_add_(0, batch.class_index.long().cpu(), rows)
     if reduce is not None:
         totals = reduce(totals).double().cpu()
-    n = int(totals[1])
+    n = int(totals[:, 1].sum())
     if n == 0:
         raise ValueError("no validation pair to fit a temperature on: the validation split is empty")
-    coverage = totals[2:] / n
+    means = _class_means(torch.cat([totals[:, :1], totals[:, 2:]], dim=1), totals[:, 1])  # [C', 1 + L]
     alphas = torch.tensor(HDR_LEVELS, dtype=torch.float64)
-    return float(totals[0] / n), float((coverage - alphas).abs().mean()), n
+    ece = (means[:, 1:] - alphas).abs().mean(1)  # [C']
+    return float(means[:, 0].mean()), float(ece.mean()), n
 
 
 class _GridValues(NamedTuple):
-    """One batch's unnormalised log density on the whole grid ``(B, N)`` and at each real pair's nearest
-    grid point ``(B, M)`` (0 on padding), with the number of real pairs per image ``(B,)``."""
+    """One batch's unnormalised log density on the whole grid ``(B, N)``, the sum of its values at each
+    image's real pairs' nearest grid points ``(B,)``, the number of real pairs per image ``(B,)`` and the
+    images' classes ``(B,)``."""
 
     grid: torch.Tensor
     at_pairs: torch.Tensor
     pairs: torch.Tensor
+    class_index: torch.Tensor
 
 
 def _grid_values(batch: ScoredPairs, level: int) -> _GridValues:
@@ -147,7 +174,8 @@ def _grid_values(batch: ScoredPairs, level: int) -> _GridValues:
     grid = batch.dist.grid_log_density(level).double()  # [B, N]
     index = so3_healpix_nearest_index(fill_padding(batch.targets, mask), level).to(grid.device)  # [B, M]
     mask = mask.to(grid.device)
-    return _GridValues(grid, grid.gather(1, index).masked_fill(~mask, 0.0), mask.sum(1).double())
+    at_pairs = grid.gather(1, index).masked_fill(~mask, 0.0).sum(1)
+    return _GridValues(grid, at_pairs, mask.sum(1).double(), batch.class_index.long().to(grid.device))
 
 
 def fit_level(level: int, n_images: int) -> int:
@@ -162,14 +190,17 @@ def fit_level(level: int, n_images: int) -> int:
 def fit_temperature(
     batches: list[ScoredPairs],
     level: int,
+    num_classes: int | None = None,
     split: str = "val",
     n_images: int | None = None,
     reduce: Callable[[torch.Tensor], torch.Tensor] | None = None,
     bounds: tuple[float, float] = TEMPERATURE_BOUNDS,
     xatol: float = 0.01,
 ) -> Recalibration:
-    """The temperature that maximises the batches' mean log likelihood on the grid of ``level`` (module
-    docstring; :func:`fit_level` picks a coarser grid where the values would not fit in memory).
+    """The temperature that maximises the batches' log likelihood, the mean over classes of each class's
+    mean over its pairs, on the grid of ``level`` (module docstring; :func:`fit_level` picks a coarser grid
+    where the values would not fit in memory). ``num_classes``: the number of classes (default: the
+    largest class index + 1; give it in a distributed run, where a process may not see every class).
 
     Each distribution's values on the grid are computed once; the search then only rescales them (the
     log likelihood of a pair at temperature ``T`` is ``v / T - logsumexp(grid / T) + log N - log(pi^2)``).
@@ -184,33 +215,46 @@ def fit_temperature(
     if not low < 1.0 < high:
         raise ValueError(f"the temperature bounds must enclose 1, got {bounds}")
     check_number("xatol", xatol)
+    if num_classes is None:
+        num_classes = 1 + max((int(b.class_index.max()) for b in batches if len(b.class_index)), default=0)
+    check_int("num_classes", num_classes, 1)
     values = [_grid_values(b, level) for b in batches]
     constant = math.log(math.prod(so3_grid_size(level))) + LOG_UNIFORM_DENSITY
 
-    def mean_log_likelihood(temperature: float) -> float:
-        totals = torch.zeros(2, dtype=torch.float64)  # [ll sum, pairs]
+    def class_log_likelihoods(temperature: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per class: the log likelihood summed over its pairs, and its number of pairs ``(C,)`` each."""
+        totals = torch.zeros(num_classes, 2, dtype=torch.float64)
         for v in values:
             lse = torch.logsumexp(v.grid / temperature, dim=1)  # [B]
-            totals[0] += (v.at_pairs.sum(1) / temperature - v.pairs * lse).sum().cpu()
-            totals[1] += v.pairs.sum().cpu()
+            rows = torch.stack([v.at_pairs / temperature - v.pairs * lse + v.pairs * constant, v.pairs], dim=1)
+            totals.index_add_(0, v.class_index.cpu(), rows.cpu())
         if reduce is not None:
             totals = reduce(totals).double().cpu()
-        if totals[1] == 0:
-            raise ValueError("no validation pair to fit a temperature on: the validation split is empty")
-        return float(totals[0] / totals[1]) + constant
+        return totals[:, 0], totals[:, 1]
 
-    result = minimize_scalar(
-        lambda x: -mean_log_likelihood(math.exp(x)),
-        bounds=(math.log(low), math.log(high)),
-        method="bounded",
-        options={"xatol": xatol},
-    )
-    temperature = float(math.exp(result.x))
-    if not mean_log_likelihood(temperature) > mean_log_likelihood(1.0):  # nothing beats the model as it is
-        temperature = 1.0
+    def search(objective: Callable[[float], float]) -> float:
+        result = minimize_scalar(
+            lambda x: -objective(math.exp(x)),
+            bounds=(math.log(low), math.log(high)),
+            method="bounded",
+            options={"xatol": xatol},
+        )
+        temperature = float(math.exp(result.x))
+        return temperature if objective(temperature) > objective(1.0) else 1.0  # nothing beats T = 1
+
+    def headline(temperature: float) -> float:
+        sums, counts = class_log_likelihoods(temperature)
+        if counts.sum() == 0:
+            raise ValueError("no validation pair to fit a temperature on: the validation split is empty")
+        return float(_class_means(sums, counts).mean())
+
+    temperature = search(headline)
+    _, counts = class_log_likelihoods(1.0)
+    present = [c for c in range(num_classes) if counts[c] > 0]
+    per_class = tuple(search(lambda t, c=c: float(class_log_likelihoods(t)[0][c] / counts[c])) for c in present)
     values.clear()  # the grid values are not needed any more
-    before = score_temperature(batches, 1.0, level, reduce)
-    after = score_temperature(batches, temperature, level, reduce) if temperature != 1.0 else before
+    before = score_temperature(batches, 1.0, level, num_classes, reduce)
+    after = score_temperature(batches, temperature, level, num_classes, reduce) if temperature != 1.0 else before
     return Recalibration(
         temperature=temperature,
         grid_level=level,
@@ -221,4 +265,5 @@ def fit_temperature(
         log_likelihood_after=after[0],
         ece_before=before[1],
         ece_after=after[1],
+        class_temperatures=per_class if len(per_class) > 1 else (),
     )

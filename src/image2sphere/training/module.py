@@ -386,7 +386,8 @@ class PoseEstimationModule(pl.LightningModule):
                 index = batch.get("index", torch.full_like(batch["class_index"], -1))
                 seeds = [stable_seed("recalibration", c, i) for c, i in zip(batch["class_index"].tolist(),
                                                                             index.tolist(), strict=True)]  # fmt: skip
-                batches.append(ScoredPairs(dist, targets, mask, tie_break_uniforms(seeds, mask.shape[1])))
+                u = tie_break_uniforms(seeds, mask.shape[1])
+                batches.append(ScoredPairs(dist, targets, mask, u, batch["class_index"]))
                 n_images += len(targets)
         finally:
             self.train(was_training)
@@ -396,7 +397,10 @@ class PoseEstimationModule(pl.LightningModule):
             reduce = self._sum_over_processes
         if not batches and reduce is None:
             raise ValueError(f"the {split} split has no image to fit the recalibration on")
-        self.recalibration = fit_temperature(batches, level, split=split, n_images=n_images, reduce=reduce)
+        num_classes = len(self.class_names) if self.class_names else None
+        self.recalibration = fit_temperature(
+            batches, level, num_classes=num_classes, split=split, n_images=n_images, reduce=reduce
+        )
         return self.recalibration
 
     def _sum_over_processes(self, totals: torch.Tensor) -> torch.Tensor:

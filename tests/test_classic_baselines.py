@@ -16,15 +16,14 @@ import torch
 import torch.nn.functional as F
 from scipy.spatial.transform import Rotation
 
-import image2sphere.so3  # noqa: F401  (import order: so3 before distributions)
-from conftest import brute_force_nearest, haar_rotations
+from conftest import REPO, brute_force_nearest, haar_rotations
 from image2sphere.distributions.euler_bins import (
     EulerBins,
     elevation_bin_log_volumes,
     euler_bin_index,
     euler_bins_nll,
 )
-from image2sphere.nn import BinDeltaRegression, EulerBinsNet, ResNetEncoder, SphericalRegression
+from image2sphere.nn import BinDeltaRegression, ResNetEncoder, SphericalRegression, ViewpointBinsNet
 from image2sphere.nn.classification_regression import QUATERNION_SIGNS, quaternion_sign_class
 from image2sphere.nn.regression import PerClassLinear
 from image2sphere.so3 import (
@@ -186,7 +185,7 @@ def test_euler_bins_bad_input():
     with pytest.raises(ValueError, match=r"shape \(B, 63\)"):
         EulerBins.from_output(torch.zeros(2, 60), N_BINS)
     with pytest.raises(ValueError, match="num_bins"):
-        EulerBinsNet(ResNetEncoder(depth=18, weights=None), 32, num_bins=0)
+        ViewpointBinsNet(ResNetEncoder(depth=18, weights=None), 32, num_bins=0)
     with pytest.raises(ValueError, match="orthonormal|rotation"):
         euler_bins_nll(torch.zeros(1, 3 * N_BINS), 2 * torch.eye(3)[None], N_BINS)
 
@@ -288,3 +287,14 @@ def test_bin_delta_bad_input():
     net = BinDeltaRegression(encoder, 32, hidden=8)
     with pytest.raises(ValueError, match=r"shape \(B, 288\)"):
         net.output_distribution(torch.zeros(2, 100))
+
+
+def test_the_old_name_of_the_viewpoint_bins_network_still_resolves():
+    """Checkpoints store ``model.net._target_``; those written before the rename name EulerBinsNet, which
+    must still build the same class (conf/model/viewpoint_bins.yaml now names ViewpointBinsNet)."""
+    from hydra.utils import get_class
+    from omegaconf import OmegaConf
+
+    assert get_class("image2sphere.nn.EulerBinsNet") is ViewpointBinsNet
+    stored = OmegaConf.load(REPO / "conf" / "model" / "viewpoint_bins.yaml")
+    assert stored.net._target_ == "image2sphere.nn.ViewpointBinsNet"

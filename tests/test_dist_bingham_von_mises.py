@@ -12,7 +12,6 @@ import mpmath
 import pytest
 import torch
 
-import image2sphere.so3  # noqa: F401  (import order: so3 before distributions)
 from conftest import haar_rotations
 from image2sphere.distributions.bingham import (
     Bingham,

@@ -4,7 +4,14 @@ from image2sphere.nn.activation import SO3ReLU
 from image2sphere.nn.base import PoseNetwork
 from image2sphere.nn.classification_regression import BinDeltaRegression, SphericalRegression
 from image2sphere.nn.encoder import RESNET_DEPTHS, ResNetEncoder
-from image2sphere.nn.heads import BinghamNet, EulerBinsNet, MatrixFisherNet, RotationLaplaceNet, VonMisesNet
+from image2sphere.nn.heads import (
+    BinghamNet,
+    EulerBinsNet,
+    MatrixFisherNet,
+    RotationLaplaceNet,
+    ViewpointBinsNet,
+    VonMisesNet,
+)
 from image2sphere.nn.i2s import I2S, FourierMLP
 from image2sphere.nn.icosahedral import IcosahedralI2S
 from image2sphere.nn.ipdf import IPDF
@@ -17,6 +24,7 @@ __all__ = [
     "BinDeltaRegression",
     "BinghamNet",
     "EulerBinsNet",
+    "ViewpointBinsNet",
     "MatrixFisherNet",
     "RotationLaplaceNet",
     "VonMisesNet",

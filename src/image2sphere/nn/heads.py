@@ -13,7 +13,7 @@ network                           family (:mod:`image2sphere.distributions`)   o
                                   Deng et al. 2022 for ``num_components > 1``)
 :class:`VonMisesNet`              von Mises mixture on Euler angles            10 per component
                                   (Prokudin et al. 2018)
-:class:`EulerBinsNet`             Euler-angle bins (Tulsiani & Malik 2015)     3 x ``num_bins``
+:class:`ViewpointBinsNet`         Euler-angle bins (Tulsiani & Malik 2015)     3 x ``num_bins``
 ================================  ===========================================  =====================
 
 Densities are w.r.t. the Haar measure of volume ``pi^2``; every family is also scored by the grid
@@ -34,7 +34,15 @@ from image2sphere.distributions.rotation_laplace import RotationLaplace, rotatio
 from image2sphere.distributions.von_mises import VonMisesEuler, von_mises_nll
 from image2sphere.nn.base import PoseNetwork
 
-__all__ = ["BinghamNet", "EulerBinsNet", "MatrixFisherNet", "ParametricHead", "RotationLaplaceNet", "VonMisesNet"]
+__all__ = [
+    "BinghamNet",
+    "EulerBinsNet",
+    "MatrixFisherNet",
+    "ParametricHead",
+    "RotationLaplaceNet",
+    "VonMisesNet",
+    "ViewpointBinsNet",
+]
 
 
 class ParametricHead(PoseNetwork):
@@ -138,7 +146,7 @@ class VonMisesNet(ParametricHead):
         return von_mises_nll(output, rotation, self.num_components)
 
 
-class EulerBinsNet(ParametricHead):
+class ViewpointBinsNet(ParametricHead):
     """Tulsiani & Malik 2015, "Viewpoints and keypoints" (CVPR): azimuth, elevation and tilt each
     classified into ``num_bins`` bins (the paper: 21), as a piecewise-constant density on SO(3)
     (:mod:`image2sphere.distributions.euler_bins`), trained by the three cross-entropies. Output
@@ -154,3 +162,8 @@ class EulerBinsNet(ParametricHead):
 
     def loss(self, output: torch.Tensor, rotation: torch.Tensor, grid_level: int) -> torch.Tensor:
         return euler_bins_nll(output, rotation, self.num_bins)
+
+
+#: the old name of :class:`ViewpointBinsNet` (``model=viewpoint_bins``), kept so that checkpoints whose
+#: stored config names ``image2sphere.nn.EulerBinsNet`` still load
+EulerBinsNet = ViewpointBinsNet

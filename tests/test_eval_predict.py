@@ -105,7 +105,7 @@ def test_predictor_on_a_batch_matches_the_trained_module(trained):
     assert x.shape == (3, 3, 32, 32)
     with torch.no_grad():
         # the recalibrated distribution the module shows (its coefficients divided by the stored temperature)
-        torch.testing.assert_close(dist.coeffs, module.distribution(module(x)).coeffs)
+        torch.testing.assert_close(dist.coeffs, module.calibrated_distribution(module(x)).coeffs)
         assert module.recalibration is not None and predictor.temperature == module.recalibration.temperature
         raw = Predictor.from_checkpoint(ckpt, recalibration=False)(images)
         torch.testing.assert_close(raw.coeffs, module(x))

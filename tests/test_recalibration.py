@@ -223,3 +223,16 @@ def test_eval_applies_fits_and_turns_off_the_recalibration(tiny_run, tmp_path):
                        check=False)  # fmt: skip
     assert again.returncode != 0 and "already exists" in again.stderr + again.stdout
     assert not (tmp_path / "x" / "metrics.json").exists()
+
+
+def test_the_reliability_diagram_draws_the_recalibrated_curve(tiny_run):
+    """The tiny run's metrics have both calibrations: the diagram has the mean before and after, the
+    latter labelled with its temperature and ECE; without the recalibrated keys there is no such line."""
+    from image2sphere.plot import plot_reliability
+
+    metrics = read_metrics(tiny_run)
+    labels = [line.get_label() for line in plot_reliability(metrics).axes[0].get_lines()]
+    after = [label for label in labels if "recalibrated" in label]
+    assert len(after) == 1 and f"{metrics['calibration_ece_calibrated']:.3f}" in after[0]
+    plain = {k: v for k, v in metrics.items() if "calibrated" not in k}
+    assert not any("recalibrated" in line.get_label() for line in plot_reliability(plain).axes[0].get_lines())

@@ -149,7 +149,7 @@ def plot_dataset_item(
     c = int(item["class_index"])
     name = class_names[c] if c < len(class_names) else c
     gt = item["rotations"][item["mask"]]
-    dist = model.distribution(output.float())  # recalibrated, where the model has a fitted temperature
+    dist = model.calibrated_distribution(output.float())  # recalibrated, where the model has a fitted temperature
     return plot_so3_distribution(dist, level=level, threshold=threshold, gt_rotations=gt, title=f"{title} ({name})")
 
 

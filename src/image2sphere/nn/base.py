@@ -35,6 +35,7 @@ from torch import nn
 
 from image2sphere.checks import check_int
 from image2sphere.distributions.base import PoseDistribution
+from image2sphere.distributions.fourier import SO3Distribution, fourier_grid_nll
 from image2sphere.precision import encoder_autocast, float32_methods, float32_region, to_float32
 
 __all__ = ["Float32Head", "PoseNetwork", "method_of"]
@@ -133,8 +134,6 @@ def method_of(net: nn.Module) -> tuple[Callable[[torch.Tensor], PoseDistribution
         return net.output_distribution, net.loss
     lmax = getattr(net, "lmax", None)
     if isinstance(lmax, int) and not isinstance(lmax, bool):
-        from image2sphere.distributions.fourier import SO3Distribution, fourier_grid_nll
-
         return (  # in float32 under autocast, as a pose network's own methods
             float32_region(lambda output: SO3Distribution(output, lmax)),
             float32_region(lambda output, rotation, grid_level: fourier_grid_nll(output, lmax, rotation, grid_level)),

@@ -25,7 +25,7 @@ Conventions
   fits one temperature on the validation split after training; it is kept in :attr:`recalibration`
   and in checkpoints (``checkpoint["recalibration"]``). The test then also reports the log likelihood,
   HDR coverage and ECE of the recalibrated distributions (``<metric>_calibrated``); every other metric
-  is the model's own. :meth:`distribution` is the distribution to show and use: recalibrated unless
+  is the model's own. :meth:`calibrated_distribution` is the distribution to show and use: recalibrated unless
   :attr:`use_recalibration` is False.
 """
 
@@ -163,9 +163,10 @@ class PoseEstimationModule(pl.LightningModule):
             return self.net(images, class_index)
         return self.net(images)
 
-    def distribution(self, output: torch.Tensor):
-        """The distribution of the network's ``output`` to show and use: tempered by the fitted
-        temperature (:attr:`recalibration`) unless :attr:`use_recalibration` is False or none was fitted."""
+    def calibrated_distribution(self, output: torch.Tensor):
+        """The distribution of the network's ``output`` to show and use: tempered by the fitted temperature
+        (:attr:`recalibration`) unless :attr:`use_recalibration` is False or none was fitted (the
+        network's own ``distribution(images)`` is never recalibrated)."""
         dist = self.output_distribution(output)
         if self.recalibration is None or not self.use_recalibration or not dist.has_density:
             return dist

@@ -35,6 +35,8 @@ class Run:
     choices: dict[str, Any]
     config: dict[str, Any]
     overrides: list[str] = field(default_factory=list)
+    # the ``hydra`` section of ``.hydra/hydra.yaml`` (mode, sweeper, job number ...); empty without the file
+    hydra: dict[str, Any] = field(default_factory=dict)
 
     def get(self, key: str, default: Any = _MISSING) -> Any:
         """A group's choice (``model``) or a dotted config value (``model.net.lmax``); ``default``
@@ -57,6 +59,11 @@ class Run:
     @property
     def seed(self) -> Any:
         return self.get("seed", None)
+
+    @property
+    def multirun_job(self) -> bool:
+        """A job of a Hydra multirun (``python -m src.train -m ...``, a paper table, an Optuna study)."""
+        return str(self.hydra.get("mode", "")).upper() == "MULTIRUN"
 
     @property
     def smoke_test(self) -> bool:
@@ -116,11 +123,14 @@ def _read_run(path: Path) -> Run | UnfinishedRun:
         overrides = (_read_yaml(hydra_dir / "overrides.yaml") or []) if has_overrides else []
     except (OSError, yaml.YAMLError) as e:
         return UnfinishedRun(path, f".hydra/ is not readable ({e})")
-    choices = dict(((hydra_cfg.get("hydra") or {}).get("runtime") or {}).get("choices") or {})
+    hydra = dict(hydra_cfg.get("hydra") or {})
+    choices = dict((hydra.get("runtime") or {}).get("choices") or {})
     metrics, reason = _read_metrics(path / "metrics.json")
     if metrics is None:
         return UnfinishedRun(path, reason)
-    return Run(path=path, metrics=metrics, choices=choices, config=config, overrides=[str(o) for o in overrides])
+    return Run(
+        path=path, metrics=metrics, choices=choices, config=config, overrides=[str(o) for o in overrides], hydra=hydra
+    )
 
 
 def find_runs(paths: list[str | Path]) -> tuple[list[Run], list[UnfinishedRun]]:

@@ -35,7 +35,8 @@ changed or removed; the only additions (never for a key the command sets itself)
   batches (the sweeper batches consecutive job numbers), so only job 0 gets to its download;
 * ``python benchmarks/grid_eval.py`` (about two minutes) runs until its level-3 comparison is printed,
   ``python benchmarks/table_cost.py`` to its end (a job line for every job, a total per table),
-  ``python benchmarks/projection_noise.py`` to its end (a ratio per degree);
+  ``python benchmarks/projection_noise.py`` to its end (a ratio per degree), ``python benchmarks/train_step.py``
+  to its end at a small size (ResNet-18, 64 px, batch 2: the paper's size takes minutes on a CPU);
 * ``pip install`` lines are compared with what ``.ci/run`` installs; ``python -m pytest`` is not run
   inside the suite: ``.ci/run`` must end with exactly that command;
 * external tools (``SKIPPED``) are listed with the reason they are not run.
@@ -262,7 +263,7 @@ def test_extraction_finds_the_documented_commands():
         "python -m src.train",
         "python -m pytest",
         'pip install -e ".[dev,cluster]"',
-        "pip install torch==2.13.0 torchvision==0.28.0",
+        "pip install -c constraints/cpu.txt torch torchvision",
         "python -m src.train dataset=symsol2 dataset.shape=cylO",
         "python -m src.train experiment=modelnet10 encoder.weights=IMAGENET1K_V2",
         "python -m src.train -m lmax=4,6 encoder=resnet18,resnet34",
@@ -1005,11 +1006,12 @@ def check_pip(command: str) -> None:
 
     ci = [tokens(line) for line in CI.read_text().splitlines() if "pip install" in line and not line.startswith("#")]
     assert tokens(command) in ci, f"{command!r} is not what .ci/run installs: {ci}"
-    pins = {w.split("==")[0]: w for w in tokens(command) if "==" in w}
-    project = (REPO / "pyproject.toml").read_text()
-    for name, pin in pins.items():
-        assert f'"{pin}"' in project, f"pyproject.toml does not pin {pin}"
-        assert name in project
+    words = tokens(command)
+    for flag, value in zip(words, words[1:], strict=False):  # a constraints file: it exists and pins what it names
+        if flag in ("-c", "--constraint"):
+            pinned = [ln.split("==")[0].strip() for ln in (REPO / value).read_text().splitlines() if "==" in ln]
+            named = [w for w in words if not w.startswith("-") and w not in ("pip", "install", value)]
+            assert set(named) <= set(pinned) or "-e" in words, f"{value} does not pin {named}"
 
 
 def check_pytest(command: str) -> None:
@@ -1054,7 +1056,8 @@ def _param(command: Command):
     if not runs_for_real(command):  # composed and checked only: quick
         return pytest.param(command, id=command.text)
     slow = words[:2] in (["python", "benchmarks/grid_eval.py"], ["python", "benchmarks/table_cost.py"],
-                         ["python", "benchmarks/data.py"], ["python", "benchmarks/projection_noise.py"])  # fmt: skip
+                         ["python", "benchmarks/data.py"], ["python", "benchmarks/projection_noise.py"],
+                         ["python", "benchmarks/train_step.py"])  # fmt: skip
     slow = slow or not any(w.startswith("README.md:") for w in command.where) and _first_words(command.text) == "python"
     slow = slow or needs_own_process(words)  # DDP and the joblib launcher: processes of their own
     if words[:3] == ["python", "-m", "src.train"] and not any(PRETRAINED.match(w) for w in words):
@@ -1095,6 +1098,14 @@ def test_documented_command(command: Command, fixtures_root, checkpoint_run, tmp
         assert proc.returncode == 0 and "total benchmark time" in proc.stdout, describe(argv, proc)
         readers = {"symsol", "modelnet10", "pascal3d", "symsol_rendered"}
         assert readers <= {line.split()[0] for line in proc.stdout.splitlines() if line.strip()}, proc.stdout
+        return
+    if args[0] == "benchmarks/train_step.py":  # the paper's size is minutes on a CPU: the same script, small
+        small = ["--batch", "2", "--image-size", "64", "--encoder", "resnet18", "--repeats", "1", "--warmup", "1",
+                 "--eval-batch", "1", "--level", "3"]  # fmt: skip
+        proc = run_in(ws, [*argv, *small], timeout=600)
+        out = proc.stdout
+        assert proc.returncode == 0 and "bf16 / float32 step time:" in out, describe(argv, proc)
+        assert "training step, float32" in out and "level-3 evaluation" in out, out
         return
     if args[0] == "benchmarks/projection_noise.py":  # to the end: a ratio for every degree and image size
         proc = run_in(ws, argv, timeout=600)

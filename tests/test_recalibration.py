@@ -15,7 +15,7 @@ import math
 import pytest
 import torch
 
-from conftest import haar_rotations, read_metrics, run_module
+from conftest import haar_rotations, read_metrics, run_module, run_train
 from image2sphere.distributions.base import PointEstimate, TemperedDistribution, check_temperature
 from image2sphere.distributions.bingham import Bingham
 from image2sphere.distributions.fourier import SO3Distribution
@@ -236,3 +236,28 @@ def test_the_reliability_diagram_draws_the_recalibrated_curve(tiny_run):
     assert len(after) == 1 and f"{metrics['calibration_ece_calibrated']:.3f}" in after[0]
     plain = {k: v for k, v in metrics.items() if "calibrated" not in k}
     assert not any("recalibrated" in line.get_label() for line in plot_reliability(plain).axes[0].get_lines())
+
+
+def test_a_run_without_a_validation_split_trains_tests_and_fits_nothing(tmp_path):
+    """dataset.val_per_shape=0 (the paper's SYMSOL protocol has no validation split): the run ends as
+    before, says why no temperature was fitted, and its checkpoint and metrics have none."""
+    run = tmp_path / "run"
+    proc = run_train(["trainer.max_epochs=1", "dataset.val_per_shape=0", "logger=none", f"hydra.run.dir={run}"],
+                     tmp_path / "data", tmp_path / "logs")  # fmt: skip
+    assert "no validation split; no temperature fitted" in proc.stdout + proc.stderr
+    assert "recalibration" not in torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    metrics = read_metrics(run)
+    assert "log_likelihood" in metrics and "temperature" not in metrics and "log_likelihood_calibrated" not in metrics
+
+
+@pytest.mark.slow
+def test_testing_a_stored_checkpoint_reports_its_recalibration(tiny_run, tmp_path):
+    """``train=false ckpt_path=...``: the test of a loaded checkpoint reports its stored temperature's
+    metrics, equal to those the training run reported."""
+    run = tmp_path / "run"
+    ckpt = tiny_run / "checkpoints" / "last.ckpt"
+    run_train(["train=false", f"ckpt_path={ckpt}", "logger=none", f"hydra.run.dir={run}"], tmp_path / "data",
+              tmp_path / "logs")  # fmt: skip
+    metrics, original = read_metrics(run), read_metrics(tiny_run)
+    assert metrics["temperature"] == pytest.approx(original["temperature"])
+    assert metrics["log_likelihood_calibrated"] == pytest.approx(original["log_likelihood_calibrated"], rel=1e-5)

@@ -34,7 +34,7 @@ import yaml
 
 from image2sphere.reporting.metrics_table import RECALIBRATED_COLUMNS, TABLE_COLUMNS
 from image2sphere.reporting.runs import Run
-from image2sphere.reporting.tables import MISSING_MD, MISSING_TEX, Cell, _md_escape, _ours, latex_escape
+from image2sphere.reporting.tables import MISSING_MD, MISSING_TEX, Cell, format_cell, latex_escape, md_escape
 
 __all__ = [
     "SWEEP_METRICS",
@@ -281,7 +281,9 @@ def sweep_lines(table: SweepTable, missing: str, pm: str) -> list[list[str]]:
     out = []
     for row in table.rows:
         setting = [missing if v is None else v for v in row.setting] if table.keys else ["all runs"]
-        metrics = [_ours(c, _digits(fmt), missing, pm) for c, (_, _, fmt) in zip(row.cells, table.columns, strict=True)]
+        metrics = [
+            format_cell(c, _digits(fmt), missing, pm) for c, (_, _, fmt) in zip(row.cells, table.columns, strict=True)
+        ]
         out.append([*setting, *metrics, str(len(row.runs))])
     return out
 
@@ -316,11 +318,11 @@ def sweep_to_markdown(table: SweepTable, unfinished: list | None = None) -> str:
     if table.sources:
         lines += [", ".join(f"`{s}`" for s in table.sources), ""]
     lines += [_explanation(table), ""]
-    header = sweep_header(table, escape=_md_escape)
+    header = sweep_header(table, escape=md_escape)
     lines.append("| " + " | ".join(header) + " |")
     lines.append("|" + "---|" * max(len(table.keys), 1) + "---:|" * (len(table.columns) + 1))
     for cells in sweep_lines(table, MISSING_MD, "±"):
-        lines.append("| " + " | ".join(_md_escape(c) for c in cells) + " |")
+        lines.append("| " + " | ".join(md_escape(c) for c in cells) + " |")
     legend = (f"{MISSING_MD}: the run's config has no such key; n/a: no run of the row has the metric; ± the sample "
               "standard deviation over the row's runs (seeds), none for a single run.")  # fmt: skip
     recalibrated = [title for m, title, _ in table.columns if m.endswith(CALIBRATED)]

@@ -36,8 +36,10 @@ __all__ = [
     "FilledTable",
     "build_table",
     "draw_figure",
+    "format_cell",
     "latex_escape",
     "load_layouts",
+    "md_escape",
     "table_lines",
     "to_latex",
     "to_markdown",
@@ -225,7 +227,9 @@ def _number(x: float, digits: int, signed: bool = False) -> str:
     return f"{x:+.{digits}f}" if signed else f"{x:.{digits}f}"
 
 
-def _ours(cell: Cell, digits: int, missing: str, pm: str) -> str:
+def format_cell(cell: Cell, digits: int, missing: str, pm: str) -> str:
+    """A cell of ours as text: its fixed text, ``missing``, ``n/a``, or the mean (``digits`` decimals) with
+    ``pm`` and the standard deviation where there are several runs."""
     if cell.text is not None:
         return cell.text
     if cell.missing:
@@ -258,7 +262,7 @@ def table_lines(table: FilledTable, missing: str, pm: str) -> list[tuple[str, st
             (
                 row["label"],
                 source,
-                [_ours(c, col["digits"], missing, pm) for c, col in zip(cells, columns, strict=True)],
+                [format_cell(c, col["digits"], missing, pm) for c, col in zip(cells, columns, strict=True)],
             )
         )
         if any(c.published is not None for c in cells):
@@ -277,7 +281,8 @@ def _column_titles(table: FilledTable) -> list[str]:
     return [f"{c['group']}: {c['title']}" if c.get("group") else c["title"] for c in table.layout["columns"]]
 
 
-def _md_escape(text: str) -> str:
+def md_escape(text: str) -> str:
+    """``text`` safe inside a Markdown table cell."""
     return text.replace("|", "\\|")
 
 
@@ -291,7 +296,7 @@ def to_markdown(table: FilledTable, unfinished: list | None = None) -> str:
     lines.append("| method | | " + " | ".join(f"{t} {a}" for t, a in zip(titles, arrows, strict=True)) + " |")
     lines.append("|---|---|" + "---:|" * len(titles))
     for label, source, cells in table_lines(table, MISSING_MD, "±"):
-        lines.append(f"| {_md_escape(label)} | {source} | " + " | ".join(cells) + " |")
+        lines.append(f"| {md_escape(label)} | {source} | " + " | ".join(cells) + " |")
     if any(c.runs for row in table.calibration for c in row):
         lines += ["", "Calibration (expected calibration error of the highest-density regions at 10%..90% mass,"
                   " lower is better; point estimates n/a; the paper reports none):", ""]  # fmt: skip
@@ -299,7 +304,7 @@ def to_markdown(table: FilledTable, unfinished: list | None = None) -> str:
         lines.append("|---|" + "---:|" * len(table.calibration_columns))
         for row, cells in zip(layout["rows"], table.calibration, strict=True):
             lines.append(
-                f"| {_md_escape(row['label'])} | " + " | ".join(_ours(c, 3, MISSING_MD, "±") for c in cells) + " |"
+                f"| {md_escape(row['label'])} | " + " | ".join(format_cell(c, 3, MISSING_MD, "±") for c in cells) + " |"
             )
     lines += ["", f"{MISSING_MD}: no finished run; n/a: the method has no such metric (not recorded: its runs "
               "have no calibration metrics, written before they existed); ± the sample standard deviation over "

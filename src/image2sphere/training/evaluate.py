@@ -145,8 +145,14 @@ def _fit_and_store_recalibration(module, datamodule, trainer: pl.Trainer, ckpt: 
     """Fit the temperature on the dataset's validation split and write the checkpoint with it to
     ``target`` (a new file; the original is not touched)."""
     datamodule.setup("fit")
+    loader = datamodule.val_dataloader()
+    if not loader:
+        raise ValueError(
+            "recalibration=fit needs a validation split, and this dataset has none: hold out validation images "
+            "(e.g. dataset.val_per_shape=... for SYMSOL) or evaluate with recalibration=auto or off"
+        )
     module.to(trainer.strategy.root_device)
-    fitted = module.fit_recalibration(datamodule.val_dataloader())
+    fitted = module.fit_recalibration(loader)
     if fitted is None:
         log.info("Recalibration: the method predicts a point, not a distribution; nothing to fit")
         return

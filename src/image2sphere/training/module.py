@@ -366,9 +366,10 @@ class PoseEstimationModule(pl.LightningModule):
     @float32_region
     def fit_recalibration(self, dataloader, level: int | None = None, split: str = "val") -> Recalibration | None:
         """Fit the temperature on ``dataloader``'s images (the validation split) and keep it in
-        :attr:`recalibration` (:func:`~image2sphere.recalibration.fit_temperature`); ``None`` for a point
-        regressor (nothing to recalibrate). ``level``: the grid it is scored on (default: the test's,
-        ``eval_grid_level``). In a distributed run each process scores its share and the sums are added."""
+        :attr:`recalibration` (:func:`~image2sphere.recalibration.fit_temperature`). ``None`` (nothing
+        fitted) for a point regressor or an empty ``dataloader``. ``level``: the grid it is scored on
+        (default: the test's, ``eval_grid_level``). In a distributed run each process scores its share
+        and the sums are added."""
         level = self.hparams.eval_grid_level if level is None else level
         was_training = self.training
         self.eval()
@@ -396,8 +397,8 @@ class PoseEstimationModule(pl.LightningModule):
         reduce = None
         if trainer is not None and trainer.world_size > 1 and torch.distributed.is_initialized():
             reduce = self._sum_over_processes
-        if not batches and reduce is None:
-            raise ValueError(f"the {split} split has no image to fit the recalibration on")
+        if not batches and reduce is None:  # nothing to fit on (a distributed run has checked its loader)
+            return None
         num_classes = len(self.class_names) if self.class_names else None
         self.recalibration = fit_temperature(
             batches, level, num_classes=num_classes, split=split, n_images=n_images, reduce=reduce
@@ -431,10 +432,14 @@ class PoseEstimationModule(pl.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         if checkpoint.get("class_names") is not None:
             self.class_names = list(checkpoint["class_names"])
+        if checkpoint.get("recalibration") is not None:  # e.g. train=false ckpt_path=...: the test reports it
+            self.recalibration = Recalibration.from_dict(checkpoint["recalibration"])
 
     # ------------------------------------------------------------------ exact resume
-    def on_fit_start(self) -> None:
+    def on_train_start(self) -> None:
         self.recalibration = None  # a temperature fitted to other weights does not apply (fitted again after)
+
+    def on_fit_start(self) -> None:
         self._seed_base = torch.initial_seed()  # the run's seed (seed_everything), before any reseeding
 
     def on_train_batch_start(self, batch: dict, batch_idx: int) -> None:

@@ -177,8 +177,13 @@ def _train(cfg: DictConfig) -> dict[str, float]:
 def _fit_recalibration(trainer: pl.Trainer, model, datamodule, output_dir: Path) -> None:
     """Fit the temperature on the validation split (on the trainer's device) and store it in this run's
     ``last.ckpt``, rewritten atomically (rank 0)."""
+    loader = datamodule.val_dataloader()
+    if not loader:  # the same on every process: the dataset has no validation split
+        log.warning("Recalibration: the dataset has no validation split; no temperature fitted (hold out "
+                    "validation images, e.g. dataset.val_per_shape for SYMSOL, to fit one)")  # fmt: skip
+        return
     model.to(trainer.strategy.root_device)
-    fitted = model.fit_recalibration(datamodule.val_dataloader())
+    fitted = model.fit_recalibration(loader)
     if fitted is None:
         log.info("Recalibration: the method predicts a point, not a distribution; nothing to fit")
         return

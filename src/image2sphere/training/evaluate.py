@@ -149,7 +149,8 @@ def _fit_and_store_recalibration(module, datamodule, trainer: pl.Trainer, ckpt: 
     if not loader:
         raise ValueError(
             "recalibration=fit needs a validation split, and this dataset has none: hold out validation images "
-            "(e.g. dataset.val_per_shape=... for SYMSOL) or evaluate with recalibration=auto or off"
+            "(dataset.val_per_shape for SYMSOL, dataset.val_instances_per_class for ModelNet10-SO(3), "
+            "dataset.val_per_class for PASCAL3D+) or evaluate with recalibration=auto or off"
         )
     module.to(trainer.strategy.root_device)
     fitted = module.fit_recalibration(loader)

@@ -179,8 +179,9 @@ def _fit_recalibration(trainer: pl.Trainer, model, datamodule, output_dir: Path)
     ``last.ckpt``, rewritten atomically (rank 0)."""
     loader = datamodule.val_dataloader()
     if not loader:  # the same on every process: the dataset has no validation split
-        log.warning("Recalibration: the dataset has no validation split; no temperature fitted (hold out "
-                    "validation images, e.g. dataset.val_per_shape for SYMSOL, to fit one)")  # fmt: skip
+        log.warning("Recalibration: the dataset has no validation split; no temperature fitted (to fit one, hold "
+                    "out validation images: dataset.val_per_shape for SYMSOL, dataset.val_instances_per_class for "
+                    "ModelNet10-SO(3), dataset.val_per_class for PASCAL3D+)")  # fmt: skip
         return
     model.to(trainer.strategy.root_device)
     fitted = model.fit_recalibration(loader)

@@ -56,6 +56,7 @@ HEADLINE = ("acc15", "acc30", "median_error_deg")
 DENSITY_ONLY = ("log_likelihood", "spread_deg", "calibration_ece", *HDR_COVERAGE_KEYS)
 TABLE_HEADER = ["class", "log lik.", "spread", "ECE", "acc@15", "acc@30", "med.err"]
 N_DENSITY_COLUMNS = 3  # log lik., spread, ECE: n/a for a point regressor
+RECALIBRATED_HEADER = ["LL recal.", "ECE recal."]
 
 
 def test_every_model_config_is_covered_here():
@@ -132,15 +133,19 @@ def check_metrics(model: str, metrics: dict) -> None:
         assert not [k for k in metrics if k.startswith("log_likelihood_exact")], model
 
 
-def check_printed_table(model: str, table: list[list[str]]) -> None:
-    """Every column is printed; a regressor's log likelihood, spread and ECE read n/a in every row."""
+def check_printed_table(model: str, table: list[list[str]], metrics: dict) -> None:
+    """Every column is printed; a regressor's log likelihood, spread and ECE read n/a in every row; a run
+    with a recalibration (``temperature`` in its metrics: a density method with a validation split) also
+    has the log likelihood and ECE after it."""
     density, _ = FAMILIES[model]
     header, *rows = table
-    assert header == TABLE_HEADER, (model, header)
+    recalibrated = "temperature" in metrics
+    assert not recalibrated or density, model  # a point regressor has nothing to recalibrate
+    assert header == TABLE_HEADER + (RECALIBRATED_HEADER if recalibrated else []), (model, header)
     assert rows and rows[-1][0] == "mean", (model, rows)
     last = 1 + N_DENSITY_COLUMNS
     for row in rows:
-        assert len(row) == len(TABLE_HEADER), (model, row)
+        assert len(row) == len(header), (model, row)
         assert all(_is_float(cell) for cell in row[last:]), (model, row)
         if density:
             assert all(_is_float(cell) for cell in row[1:last]), (model, row)
@@ -161,7 +166,7 @@ def _run_methods(dataset: str, data_dir: Path, tmp_path: Path) -> None:
         metrics = json.loads((job / "metrics.json").read_text())
         assert 0 < metrics["n_images"] <= 4, (model, metrics["n_images"])  # fast_dev_run: one test batch
         check_metrics(model, metrics)
-        check_printed_table(model, tables[str(job.resolve())])
+        check_printed_table(model, tables[str(job.resolve())], metrics)
 
 
 def test_every_method_runs_on_symsol1_fixtures(tmp_path, published_fixtures):
@@ -205,7 +210,7 @@ def test_eval_predict_and_predictor_on_each_family(checkpoints, tmp_path, model)
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["n_images"] == 6 and metrics["eval_grid_level"] == 3  # every test image: 2 shapes x 3
     check_metrics(model, metrics)
-    check_printed_table(model, printed_tables(proc.stdout)[str(out.resolve())])
+    check_printed_table(model, printed_tables(proc.stdout)[str(out.resolve())], metrics)
     columns = markdown_table((out / "metrics.md").read_text())
     assert columns["class"] == ["cube", "cone", "mean"]
     assert all(_is_float(c) for c in columns["med.err"] + columns["acc@15"]), columns
@@ -228,9 +233,13 @@ def test_eval_predict_and_predictor_on_each_family(checkpoints, tmp_path, model)
     assert "mode 1: mass" in proc.stdout and "YXY angles" in proc.stdout, proc.stdout
     assert (tmp_path / "cube_so3.png").read_bytes()[:4] == b"\x89PNG"
 
-    dist = Predictor.from_checkpoint(ckpt)(image)
+    dist = Predictor.from_checkpoint(ckpt)(image)  # recalibrated by the run's temperature, if it has one
+    raw = Predictor.from_checkpoint(ckpt, recalibration=False)(image)
     assert isinstance(dist, PoseDistribution) and dist.batch_size == 1
-    assert dist.has_density is density and dist.has_exact_density is closed_form
+    assert dist.has_density is density and raw.has_exact_density is closed_form
+    if density and "temperature" in metrics:  # the network's distribution tempered by the stored temperature
+        expected = torch.log_softmax(raw.grid_log_density(2).double() / metrics["temperature"], dim=1)
+        torch.testing.assert_close(dist.log_prob_grid(2).double(), expected, rtol=1e-4, atol=1e-4)
     assert isinstance(dist, PointEstimate) is not density
     rotations, mass = dist.modes(level=3, k=5)[0]  # src.predict's defaults: the same modes as printed
     assert len(mass) >= 1 and rotations.shape == (len(mass), 3, 3)

@@ -87,6 +87,25 @@ def test_tempered_matrix_fisher_is_normalised():
     assert torch.allclose(density.mean(1) * math.pi**2, torch.ones(3, dtype=torch.float64), atol=2e-3)
 
 
+@pytest.mark.parametrize("temperature", [0.4, 3.0])
+def test_viewpoint_bins_temper_exactly_in_their_family(temperature):
+    """The Euler-bin density P_a P_e P_t / V_e raised to 1 / T is again a product of binned factors: the
+    family's own tempering keeps its closed form and equals the generic grid tempering on the grid."""
+    from image2sphere.distributions.euler_bins import EulerBins
+
+    generator = torch.Generator().manual_seed(2)
+    bins = EulerBins(torch.randn(2, 3, 6, generator=generator, dtype=torch.float64))
+    tempered = bins.tempered(temperature)
+    assert type(tempered) is EulerBins and tempered.has_exact_density
+    generic = TemperedDistribution(bins, temperature)
+    assert torch.allclose(tempered.log_prob_grid(LEVEL), generic.log_prob_grid(LEVEL), atol=1e-9)
+    # the closed form is normalised: its density times pi^2 averages to 1 over the equivolumetric grid
+    from image2sphere.so3.grid import so3_healpix_grid
+
+    density = tempered.exact_log_density(so3_healpix_grid(3).double()).exp()
+    assert torch.allclose(density.mean(1) * math.pi**2, torch.ones(2, dtype=torch.float64), atol=0.05)
+
+
 def test_temperatures_compose_and_one_is_the_identity():
     b = bingham()
     assert b.tempered(1.0) is b and b.tempered(1) is b

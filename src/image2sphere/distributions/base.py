@@ -29,7 +29,7 @@ instead: it has a mode and no density.
   mode, the ranking and every accuracy are unchanged. The default, :class:`TemperedDistribution`,
   divides the unnormalised log density by ``T`` and normalises on the grid; a family where the power
   stays in the family overrides it (the Fourier family scales its coefficients, the matrix Fisher
-  family its parameter matrix, both exactly).
+  family its parameter matrix, the Euler bins their bin probabilities, all exactly).
 
 * **Mixed precision** (:mod:`image2sphere.precision`): every method of this class, of the grid
   protocol and of each family (``__init__``, class methods and property getters included) computes in

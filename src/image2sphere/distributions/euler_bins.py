@@ -39,7 +39,7 @@ import math
 import torch
 
 from image2sphere.checks import check_int
-from image2sphere.distributions.base import PoseDistribution
+from image2sphere.distributions.base import PoseDistribution, check_temperature
 from image2sphere.so3.rotations import aet_to_matrix, check_rotation_matrix, matrix_to_aet_biternions
 
 __all__ = ["EulerBins", "check_num_bins", "elevation_bin_log_volumes", "euler_bin_index", "euler_bins_nll"]
@@ -132,6 +132,17 @@ class EulerBins(PoseDistribution):
 
     def exact_log_normalizer(self) -> torch.Tensor:
         return self.log_probs.new_zeros(self.batch_size)
+
+    def tempered(self, temperature: float) -> EulerBins:
+        """``p ** (1 / temperature)``, renormalised, exactly: the density ``P_a P_e P_t / V_e`` stays a product
+        of three binned factors. Azimuth and tilt: their log probabilities divided by the temperature; the
+        elevation: its log density ``log P_e - log V_e`` divided by it, and each bin's volume put back."""
+        temperature = check_temperature(temperature)
+        if temperature == 1.0:
+            return self
+        logits = self.log_probs / temperature  # [B, 3, n]
+        elevation = (self.log_probs[:, 1] - self.log_volumes) / temperature + self.log_volumes  # [B, n]
+        return EulerBins(torch.cat([logits[:, :1], elevation[:, None], logits[:, 2:]], dim=1))
 
     def mode_box(self) -> torch.Tensor:
         """The box of highest density ``(B, 3)`` (the three angles are independent, so per angle)."""

@@ -25,8 +25,8 @@ TABLE_COLUMNS = (
 )
 # after the recalibration's temperature: shown when the metrics have them
 RECALIBRATED_COLUMNS = (
-    ("log_likelihood_calibrated", "LL recal.", "{:9.3f}"),
-    ("calibration_ece_calibrated", "ECE recal.", "{:10.3f}"),
+    ("log_likelihood_calibrated", "LL recal.", "{:10.3f}"),  # one wider than its title: two spaces before it
+    ("calibration_ece_calibrated", "ECE recal.", "{:11.3f}"),
 )
 
 

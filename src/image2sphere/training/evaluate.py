@@ -27,7 +27,7 @@ from omegaconf import DictConfig, OmegaConf
 from image2sphere.reporting.metrics_table import format_metrics_markdown, format_metrics_table
 from image2sphere.training.checkpoint import AtomicCheckpointIO, CheckpointError, build_module, load_checkpoint
 from image2sphere.training.cluster import ddp_children_run_this_job
-from image2sphere.training.pipeline import finish_loggers, instantiate_list
+from image2sphere.training.pipeline import finish_loggers, fit_recalibration_on, instantiate_list
 from image2sphere.training.run_config import check_eval_config, command_line, override_key
 
 __all__ = ["evaluate", "recalibrated_path"]
@@ -152,13 +152,8 @@ def _fit_and_store_recalibration(module, datamodule, trainer: pl.Trainer, ckpt: 
             "(dataset.val_per_shape for SYMSOL, dataset.val_instances_per_class for ModelNet10-SO(3), "
             "dataset.val_per_class for PASCAL3D+) or evaluate with recalibration=auto or off"
         )
-    module.to(trainer.strategy.root_device)
-    fitted = module.fit_recalibration(loader)
-    if fitted is None:
-        log.info("Recalibration: the method predicts a point, not a distribution; nothing to fit")
-        return
-    log.info("Recalibration: %s", fitted.describe())
-    if trainer.is_global_zero:
+    fitted = fit_recalibration_on(trainer, module, loader)
+    if fitted is not None and trainer.is_global_zero:
         AtomicCheckpointIO().save_checkpoint({**ckpt, "recalibration": fitted.to_dict()}, target)
         log.info("The checkpoint with its recalibration: %s", target)
 

@@ -34,7 +34,7 @@ from image2sphere.training.cluster import (
 from image2sphere.training.module import NonFiniteLossError
 from image2sphere.training.run_config import check_train_config, describe_run, protocol_settings, resume_config
 
-__all__ = ["finish_loggers", "instantiate_list", "train"]
+__all__ = ["finish_loggers", "fit_recalibration_on", "instantiate_list", "train"]
 
 log = logging.getLogger(__name__)
 
@@ -174,6 +174,17 @@ def _train(cfg: DictConfig) -> dict[str, float]:
     return {**metrics, **timings}
 
 
+def fit_recalibration_on(trainer: pl.Trainer, model, loader):
+    """``model.fit_recalibration(loader)`` on the trainer's device, logged; ``None`` for a point regressor."""
+    model.to(trainer.strategy.root_device)
+    fitted = model.fit_recalibration(loader)
+    if fitted is None:
+        log.info("Recalibration: the method predicts a point, not a distribution; nothing to fit")
+    else:
+        log.info("Recalibration: %s", fitted.describe())
+    return fitted
+
+
 def _fit_recalibration(trainer: pl.Trainer, model, datamodule, output_dir: Path) -> None:
     """Fit the temperature on the validation split (on the trainer's device) and store it in this run's
     ``last.ckpt``, rewritten atomically (rank 0)."""
@@ -183,12 +194,9 @@ def _fit_recalibration(trainer: pl.Trainer, model, datamodule, output_dir: Path)
                     "out validation images: dataset.val_per_shape for SYMSOL, dataset.val_instances_per_class for "
                     "ModelNet10-SO(3), dataset.val_per_class for PASCAL3D+)")  # fmt: skip
         return
-    model.to(trainer.strategy.root_device)
-    fitted = model.fit_recalibration(loader)
+    fitted = fit_recalibration_on(trainer, model, loader)
     if fitted is None:
-        log.info("Recalibration: the method predicts a point, not a distribution; nothing to fit")
         return
-    log.info("Recalibration: %s", fitted.describe())
     last = output_dir / "checkpoints" / "last.ckpt"
     if trainer.is_global_zero and last.is_file():
         checkpoint = torch.load(last, map_location="cpu", weights_only=True)

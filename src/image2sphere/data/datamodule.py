@@ -39,6 +39,7 @@ class PoseDataModule(pl.LightningDataModule):
     """
 
     _resume: tuple[int, int] | None = None
+    _start_epoch: int = 0
     _num_workers: int | str = 0
     multiprocessing_context: str | None = None
 
@@ -63,6 +64,16 @@ class PoseDataModule(pl.LightningDataModule):
         mid-epoch, see :mod:`image2sphere.training.checkpointing`); later epochs are whole."""
         self._resume = (int(epoch), int(batches_done) * int(self.batch_size))
 
+    def start_at_epoch(self, epoch: int) -> None:
+        """The training sampler's epoch before Lightning first sets it: the epoch a resumed run starts in.
+
+        Lightning creates the training iterator of a resumed run before it tells the sampler the epoch,
+        and does not create it again for that first epoch; loader workers fetch their first indices as the
+        iterator is created. Without this, a run resumed in epoch ``e > 0`` with ``num_workers > 0`` would
+        train its first epoch on epoch 0's permutation and labels (measured: final weights 1.4 apart from
+        the uninterrupted run's; with ``num_workers=0`` the indices are drawn later and were right)."""
+        self._start_epoch = int(epoch)
+
     def _ranks(self) -> tuple[int, int]:
         """``(world size, global rank)`` of the run this module is attached to (``(1, 0)`` outside one)."""
         trainer = getattr(self, "trainer", None)
@@ -77,6 +88,8 @@ class PoseDataModule(pl.LightningDataModule):
         world, rank = self._ranks()
         if train:
             sampler = EpochShuffleSampler(len(dataset), self.seed, dataset, self._resume, world, rank)
+            if self._start_epoch:
+                sampler.set_epoch(self._start_epoch)
         else:
             sampler = ShardSampler(len(dataset), world, rank) if world > 1 else None
         workers = self.num_workers

@@ -9,6 +9,7 @@ the SYMSOL renderer's threads) shared out between the training processes of this
 from __future__ import annotations
 
 import os
+import signal
 
 from torch.utils.data import get_worker_info
 
@@ -75,7 +76,13 @@ def check_num_workers(value: object, key: str = "dataset.num_workers") -> int | 
 def init_worker(worker_id: int) -> None:
     """The DataLoader ``worker_init_fn`` of :class:`~image2sphere.data.datamodule.PoseDataModule`: calls
     ``init_worker()`` on the worker's copy of the dataset when it has one (the ModelNet10-SO(3) reader
-    closes the LMDB environments inherited through ``fork`` there; each worker opens its own on first read)."""
+    closes the LMDB environments inherited through ``fork`` there; each worker opens its own on first read).
+
+    Workers ignore SIGINT and SIGTERM: a signal sent to the whole process group (Ctrl-C in a terminal,
+    SLURM's pre-emption) must not kill a worker under its rank. The rank decides when to stop
+    (:mod:`image2sphere.training.stop`) and shuts its workers down; a worker whose rank died exits by itself."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     info = get_worker_info()
     init = getattr(info.dataset, "init_worker", None) if info is not None else None
     if callable(init):

@@ -8,19 +8,19 @@ Writing (``python -m src.train``)
   a full disk in the middle of a write leaves the previous checkpoint as it was.
 * :class:`EpochCheckpoint` is Lightning's ``ModelCheckpoint`` with two promises added: ``last.ckpt``
   is written at the end of every epoch whatever ``save_top_k`` says (Lightning >= 2.5 writes it only
-  together with a top-k file), and a first Ctrl-C (SIGINT) or a SIGTERM stops the run at the end of
-  the current training batch, after writing ``last.ckpt``; the run then ends with
-  :class:`TrainingInterrupted`, which ``python -m src.train`` turns into a line saying how to resume.
-  A second Ctrl-C stops at once, as usual. ``trainer.fast_dev_run`` writes no checkpoint.
+  together with a top-k file), and it is written at once when the ranks decide to stop on a signal
+  (Ctrl-C, SIGTERM, SLURM's requeue signal: :mod:`image2sphere.training.stop`), after which
+  ``python -m src.train`` says how to resume. ``trainer.fast_dev_run`` writes no checkpoint.
 * A checkpoint written in the middle of an epoch resumes exactly: the data module is told how many
   batches of that epoch were done (:meth:`PoseDataModule.resume_within_epoch
   <image2sphere.data.datamodule.PoseDataModule.resume_within_epoch>`), and its sampler skips them.
 
-SLURM: Lightning's own mechanism applies (``SLURMEnvironment(auto_requeue=True)``, on by default
-under SLURM): on the requeue signal (``#SBATCH --signal=SIGUSR1@90``) it writes
-``hpc_ckpt_<n>.ckpt`` into the run directory (atomically, through :class:`AtomicCheckpointIO`) and
-requeues the job, which finds it again because the run directory of a SLURM job is named after the
-job id (``conf/hydra/default.yaml``, :mod:`image2sphere.training.cluster`).
+SLURM: on the requeue signal (``SLURMEnvironment(auto_requeue=True)``, on by default under SLURM;
+``#SBATCH --signal=SIGUSR1@90``) the run stops like on SIGTERM, writing ``last.ckpt``, and rank 0 asks
+SLURM to requeue the job (:mod:`image2sphere.training.stop`); the requeued job finds that checkpoint
+because the run directory of a SLURM job is named after the job id (``conf/hydra/default.yaml``,
+:mod:`image2sphere.training.cluster`). A ``hpc_ckpt_<n>.ckpt`` that an earlier version left (Lightning's
+own requeue checkpoint) is still resumed from.
 
 Reading (``src.eval``, ``src.predict``, resuming)
 -------------------------------------------------
@@ -37,8 +37,6 @@ import logging
 import os
 import pickle
 import re
-import signal
-import threading
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -49,7 +47,6 @@ from hydra.utils import instantiate
 from lightning.fabric.utilities.cloud_io import _is_local_file_protocol
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.plugins.io import TorchCheckpointIO
-from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import OmegaConf
 
 from image2sphere.recalibration import Recalibration
@@ -58,8 +55,8 @@ __all__ = [
     "AtomicCheckpointIO",
     "CheckpointError",
     "EpochCheckpoint",
-    "TrainingInterrupted",
     "batches_done_in_epoch",
+    "epoch_resumed_in",
     "build_module",
     "load_checkpoint",
 ]
@@ -68,19 +65,6 @@ log = logging.getLogger(__name__)
 
 
 # ---------------------------------------------------------------------------------------------- writing
-class TrainingInterrupted(Exception):
-    """Training stopped on SIGINT or SIGTERM after writing ``checkpoint`` (``None`` if none could be written)."""
-
-    def __init__(self, signum: int, checkpoint: str | None, epoch: int, step: int):
-        self.signum = int(signum)
-        self.checkpoint = checkpoint
-        self.epoch = epoch
-        self.step = step
-        name = signal.Signals(self.signum).name
-        where = f"checkpoint written to {checkpoint}" if checkpoint else "no checkpoint could be written"
-        super().__init__(f"training stopped by {name} in epoch {epoch} at global step {step}; {where}")
-
-
 class AtomicCheckpointIO(TorchCheckpointIO):
     """Writes a checkpoint to ``<path>.tmp-<pid>``, flushes it to disk, then renames it to ``path``.
 
@@ -134,17 +118,11 @@ class EpochCheckpoint(ModelCheckpoint):
     true for the promises above; ``save_top_k``/``monitor`` keep the best epochs as usual).
     """
 
-    def __init__(self, *args: Any, **kwargs: Any):
-        super().__init__(*args, **kwargs)
-        self._stop_signal: int | None = None
-        self._previous_sigint: Any = None
-
     # ------------------------------------------------------------------ every epoch
     def on_train_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         super().on_train_epoch_end(trainer, pl_module)
         if self._may_save(trainer) and self._last_global_step_saved != trainer.global_step:
             self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
-        self._stop_if_asked(trainer)
 
     def on_train_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         if not trainer.fast_dev_run:  # Lightning's own version writes last.ckpt even then
@@ -153,65 +131,24 @@ class EpochCheckpoint(ModelCheckpoint):
     def _may_save(self, trainer: pl.Trainer) -> bool:
         return bool(self.save_last) and not trainer.fast_dev_run and not trainer.sanity_checking
 
-    # ------------------------------------------------------------------ graceful stop
-    def on_train_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        self._stop_signal = None
-        if threading.current_thread() is threading.main_thread():
-            self._previous_sigint = signal.getsignal(signal.SIGINT)
-            signal.signal(signal.SIGINT, self._on_sigint)
-
-    def _on_sigint(self, signum: int, frame: Any) -> None:
-        if self._stop_signal is not None:  # the second Ctrl-C: stop now, as Python does by default
-            raise KeyboardInterrupt
-        self._stop_signal = signum
-        log.warning("Ctrl-C: stopping after this training batch and writing last.ckpt (Ctrl-C again to stop at once)")
-
-    def _restore_sigint(self) -> None:
-        if self._previous_sigint is not None and threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGINT, self._previous_sigint)
-        self._previous_sigint = None
-
-    def on_train_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, *args: Any, **kwargs: Any) -> None:
-        super().on_train_batch_end(trainer, pl_module, *args, **kwargs)
-        self._stop_if_asked(trainer)
-
-    def _stop_if_asked(self, trainer: pl.Trainer) -> None:
-        signum = self._stop_signal
-        if signum is None and trainer.received_sigterm:
-            signum = signal.SIGTERM
-        if trainer.world_size > 1:
-            # A signal reaches the ranks of a DDP run at different moments: they decide together, at the
-            # end of the same batch, and all stop there when any of them was asked (the checkpoint is
-            # written by all of them together).
-            if trainer.strategy.reduce_boolean_decision(signum is not None, all=False) and signum is None:
-                signum = signal.SIGTERM
-        if signum is None:
-            return
-        path = None
-        if self._may_save(trainer):
-            if self._last_global_step_saved != trainer.global_step:
-                self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
-            path = self.last_model_path or None
-        raise TrainingInterrupted(signum, path, trainer.current_epoch, trainer.global_step)
-
-    def on_exception(self, trainer: pl.Trainer, pl_module: pl.LightningModule, exception: BaseException) -> None:
-        self._restore_sigint()
-        if isinstance(exception, SIGTERMException) and self._may_save(trainer):
-            # Lightning's own stop of a DDP run on SIGTERM (rank 0's flag, shared at the start of a batch,
-            # all ranks stop together): the batches done so far go into last.ckpt like on our own stop
-            if self._last_global_step_saved != trainer.global_step:
-                self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
-        super().on_exception(trainer, pl_module, exception)
-
-    def teardown(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
-        self._restore_sigint()
-        super().teardown(trainer, pl_module, stage)
+    # ------------------------------------------------------------------ a stop on a signal
+    def save_last_now(self, trainer: pl.Trainer) -> str | None:
+        """Write ``last.ckpt`` now unless it already holds this step (a stop on a signal, decided by every
+        rank together: :class:`~image2sphere.training.stop.StopOnRequest`); its path, or ``None`` when the
+        run writes no checkpoints. Every rank calls it; rank 0 writes."""
+        if not self._may_save(trainer):
+            return None
+        if self._last_global_step_saved != trainer.global_step:
+            self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
+        return self.last_model_path or None
 
     # ------------------------------------------------------------------ exact resume within an epoch
     def on_load_checkpoint(self, trainer: pl.Trainer, pl_module: pl.LightningModule, checkpoint: dict) -> None:
         super().on_load_checkpoint(trainer, pl_module, checkpoint)
         done = batches_done_in_epoch(checkpoint)
         datamodule = trainer.datamodule
+        if datamodule is not None and hasattr(datamodule, "start_at_epoch"):
+            datamodule.start_at_epoch(epoch_resumed_in(checkpoint))
         if done and datamodule is not None and hasattr(datamodule, "resume_within_epoch"):
             epoch = int(checkpoint.get("epoch", 0))
             log.info("resuming epoch %d after its first %d training batches", epoch, done)
@@ -227,6 +164,15 @@ def batches_done_in_epoch(checkpoint: dict) -> int:
     except (KeyError, TypeError, ValueError):
         return 0
     return 0 if progress.get("is_last_batch", True) else done
+
+
+def epoch_resumed_in(checkpoint: dict) -> int:
+    """The training epoch a run resumed from ``checkpoint`` starts in: the one Lightning tells the samplers
+    (its count of epochs processed; a checkpoint written at an epoch's end starts the next one)."""
+    try:
+        return int(checkpoint["loops"]["fit_loop"]["epoch_progress"]["current"]["processed"])
+    except (KeyError, TypeError, ValueError):
+        return int(checkpoint.get("epoch", 0) or 0)
 
 
 # ---------------------------------------------------------------------------------------------- reading

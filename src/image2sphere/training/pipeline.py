@@ -19,11 +19,10 @@ from pathlib import Path
 import lightning.pytorch as pl
 import torch
 from hydra.utils import instantiate
-from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from image2sphere.reporting.metrics_table import format_metrics_table
-from image2sphere.training.checkpoint import AtomicCheckpointIO, TrainingInterrupted, load_checkpoint
+from image2sphere.training.checkpoint import AtomicCheckpointIO, load_checkpoint
 from image2sphere.training.cluster import (
     ddp_children_run_this_job,
     is_secondary_rank,
@@ -33,6 +32,14 @@ from image2sphere.training.cluster import (
 )
 from image2sphere.training.module import NonFiniteLossError
 from image2sphere.training.run_config import check_train_config, describe_run, protocol_settings, resume_config
+from image2sphere.training.stop import (
+    StopRequested,
+    TrainingInterrupted,
+    decide_or_raise,
+    handle_signals,
+    requested,
+    use_flag_only_signals,
+)
 
 __all__ = ["finish_loggers", "fit_recalibration_on", "instantiate_list", "train"]
 
@@ -57,8 +64,13 @@ def train(cfg: DictConfig) -> dict[str, float]:
     """Fit and/or test as ``cfg`` says; returns the test metrics (empty when ``test=false``).
 
     In a multirun job, the other ranks of a DDP run start as this job (:func:`ddp_children_run_this_job`).
+    Ctrl-C, SIGTERM and SLURM's requeue signal only record a request while it runs; the ranks decide
+    together where to stop (:mod:`image2sphere.training.stop`).
     """
-    with ddp_children_run_this_job():
+    from lightning.fabric.plugins.environments import SLURMEnvironment
+
+    requeue_signal = signal.SIGUSR1 if SLURMEnvironment.detect() else None  # Lightning's default requeue signal
+    with ddp_children_run_this_job(), handle_signals(requeue_signal):
         return _train(cfg)
 
 
@@ -114,29 +126,31 @@ def _train(cfg: DictConfig) -> dict[str, float]:
     if not loggers:  # the learning-rate monitor needs a logger to write to
         callbacks = [c for c in callbacks if not isinstance(c, pl.callbacks.LearningRateMonitor)]
     trainer: pl.Trainer = instantiate(_trainer_config(cfg.trainer), callbacks=callbacks, logger=loggers or False)
+    use_flag_only_signals(trainer)
     for logger in loggers:
         logger.log_hyperparams(model.run_config)
 
-    timings: dict[str, float] = {}
     fit_ckpt = ckpt_path
     if requeued and ckpt_path is None:
         # the same job again (same config, same directory): it continues from its own last checkpoint
         fit_ckpt = requeue_checkpoint(output_dir)
         if fit_ckpt is not None:
             log.info("Requeued SLURM job %s: continuing from %s", slurm_job_id(), fit_ckpt)
+    try:
+        return _fit_and_test(cfg, trainer, model, datamodule, loggers, output_dir, ckpt_path, fit_ckpt)
+    except (TrainingInterrupted, StopRequested) as e:
+        finish_loggers(loggers)
+        _exit_interrupted(e, output_dir, ckpt_path)
+
+
+def _fit_and_test(cfg, trainer, model, datamodule, loggers, output_dir, ckpt_path, fit_ckpt) -> dict[str, float]:
+    timings: dict[str, float] = {}
     if cfg.train:
+        if requested() is not None and _no_other_rank_yet(trainer):  # asked to stop before anything started
+            raise TrainingInterrupted(requested(), None, 0, 0)
         start = time.perf_counter()
         try:
             trainer.fit(model=model, datamodule=datamodule, ckpt_path=fit_ckpt)
-        except TrainingInterrupted as e:
-            finish_loggers(loggers)
-            _exit_interrupted(e)
-        except SIGTERMException:  # Lightning's stop of a DDP run on SIGTERM; EpochCheckpoint wrote last.ckpt
-            finish_loggers(loggers)
-            last = output_dir / "checkpoints" / "last.ckpt"
-            checkpoint = str(last) if last.is_file() else None
-            epoch, step = trainer.current_epoch, trainer.global_step
-            _exit_interrupted(TrainingInterrupted(signal.SIGTERM, checkpoint, epoch, step))
         except NonFiniteLossError as e:
             last = output_dir / "checkpoints" / "last.ckpt"
             hint = (
@@ -151,11 +165,14 @@ def _train(cfg: DictConfig) -> dict[str, float]:
             log.warning("Training was interrupted; skipping the test")
             return {}
         if cfg.get("recalibration", "fit") == "fit" and not cfg.trainer.get("fast_dev_run"):
+            decide_or_raise(trainer, "after training, before the recalibration")
             start = time.perf_counter()
             _fit_recalibration(trainer, model, datamodule, output_dir)
             timings["recalibration_seconds"] = time.perf_counter() - start
     metrics: dict[str, float] = {}
     if cfg.test:
+        if cfg.train:
+            decide_or_raise(trainer, "after training, before the test")
         if not cfg.train and ckpt_path is None:
             log.warning("Testing a model that was neither trained nor loaded (train=false, ckpt_path=null)")
         start = time.perf_counter()
@@ -239,17 +256,44 @@ def _hydra_choices(resumed: bool) -> tuple[dict[str, str] | None, list[str], dic
     return choices, list(hc.overrides.task), protocol_settings(alone)
 
 
-def _exit_interrupted(e: TrainingInterrupted) -> None:
-    if is_secondary_rank():  # rank 0 says how to resume; Lightning stops all ranks when one fails
+def _no_other_rank_yet(trainer: pl.Trainer) -> bool:
+    """True in a run of one process, and in rank 0 of a DDP run whose other ranks Lightning has not started
+    yet (it starts them in ``trainer.fit``): this process may stop alone, no rank waits for it."""
+    if trainer.num_devices * trainer.num_nodes == 1:
+        return True
+    environment = trainer._accelerator_connector.cluster_environment
+    return trainer.num_nodes == 1 and not environment.creates_processes_externally and not is_secondary_rank()
+
+
+def _exit_interrupted(e: TrainingInterrupted | StopRequested, output_dir: Path, resumed_from: str | None) -> None:
+    """End the process after a stop the ranks decided together: rank 0 says what was kept and how to go
+    on, and exits with 128 + the signal's number; the other ranks exit with 0 (a non-zero exit of a rank
+    that Lightning started makes it kill the others at once, rank 0 perhaps in the middle of a write)."""
+    if is_secondary_rank():
         raise SystemExit(0)
     name = signal.Signals(e.signum).name
-    if e.checkpoint:
+    if isinstance(e, StopRequested):
+        last = output_dir / "checkpoints" / "last.ckpt"
+        if last.is_file():
+            message = (
+                f"Stopped by {name} {e.where}. The training finished; its checkpoint is {last}\n"
+                f"Test it with: python -m src.eval ckpt_path={last}"
+            )
+        else:
+            message = f"Stopped by {name} {e.where}; this run wrote no checkpoint"
+    elif e.checkpoint:
         message = (
             f"Training stopped by {name} in epoch {e.epoch} (global step {e.step}). Checkpoint: {e.checkpoint}\n"
-            f"Resume with: python -m src.train ckpt_path={e.checkpoint}"
+            + (
+                "SLURM requeues the job; it continues from that checkpoint"
+                if e.requeued
+                else f"Resume with: python -m src.train ckpt_path={e.checkpoint}"
+            )
         )
     else:
         message = f"Training stopped by {name} in epoch {e.epoch} (global step {e.step}); no checkpoint was written"
+        if resumed_from is not None:
+            message += f". Resume again with: python -m src.train ckpt_path={resumed_from}"
     log.warning(message)
     raise SystemExit(128 + e.signum)
 

@@ -1,0 +1,421 @@
+"""Pre-emption stress check: a two-process DDP run stopped by SIGTERM at many moments must always end.
+
+``python -m image2sphere.testing.preemption [--moments 22] [--seed 0] [--out DIR]`` (from the repository
+root, on the CPU; a few minutes a moment on two cores) trains a tiny two-process DDP run (Lightning's
+``trainer=ddp`` on the CPU, gloo) once without interruption, then once per *moment* of a seeded schedule
+with a SIGTERM at that moment, and checks for each:
+
+* the whole process group (both ranks, their data-loading workers) has exited within ``--bound``
+  seconds of the signal; rank 0 exited with 143 (128 + SIGTERM) and said how to go on;
+* whenever ``last.ckpt`` exists it is complete (read with ``weights_only=True``), and no temporary file
+  of an interrupted write is left;
+* resuming from it (``ckpt_path=...``, two processes again) ends as the uninterrupted run: the same
+  final weights and the same test metrics.
+
+A moment is a *phase* of the run, its n-th occurrence, the rank that sends the signal, and the target:
+``rank0`` (rank 0 alone, as ``kill <pid>`` does) or ``group`` (every process of the run at once, as SLURM
+signals a job on pre-emption or ``scancel``). The phases are the places where a signal used to hurt:
+setting up (before the first checkpoint), the sanity check, between forward and backward, inside the
+optimizer's step, validation, inside the write of a checkpoint, the end of an epoch, the end of training,
+the test. The signal is sent from inside that phase by :class:`SignalAt`, a callback the run is given on
+its command line, so that it lands there every time; the schedule adds moments timed from outside
+(seconds after the start or after the first ``last.ckpt``), which land wherever the run happens to be.
+
+On a run that does not exit within the bound, its stacks are dumped with ``py-spy`` when that is
+installed, and the process group is killed: nothing is left behind. The exit status is the number of
+failed moments. ``tests/test_scaling.py`` runs the hardest moments in the slow tier.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import lightning.pytorch as pl
+
+__all__ = ["MOMENT_PHASES", "Moment", "SignalAt", "check_moment", "main", "run_group", "schedule"]
+
+# A run small enough to take seconds: 2 ranks x batch 2, 4 training batches a rank per epoch, 2 epochs,
+# one validation batch a rank, a sanity check, 2 test batches a rank, a data-loading worker per rank.
+RUN = [
+    "trainer=ddp",
+    "trainer.devices=2",
+    "trainer.accelerator=cpu",
+    "trainer.max_epochs=2",
+    "trainer.num_sanity_val_steps=1",
+    "dataset.render.train=10",
+    "dataset.render.test=3",
+    "dataset.val_per_shape=2",
+    "dataset.image_size=32",
+    "dataset.batch_size=2",
+    "dataset.num_workers=1",
+    "lmax=2",
+    "train_grid_level=2",
+    "eval_grid_level=3",
+    "model.spread_grid_level=2",
+    "model.net.sphere_channels=16",
+    "model.net.so3_channels=4",
+    "model.net.activation_resolution=4",
+    "callbacks.progress_bar.refresh_rate=0",
+    "logger=none",
+]
+# phase -> (occurrences in the run above on each rank, ranks that pass it)
+MOMENT_PHASES: dict[str, tuple[int, tuple[int, ...]]] = {
+    "fit_start": (1, (0, 1)),
+    "sanity_check": (1, (0, 1)),
+    "forward_backward": (8, (0, 1)),
+    "optimizer_step": (8, (0, 1)),
+    "validation": (2, (0, 1)),
+    "checkpoint_write": (2, (0,)),  # rank 0 writes
+    "epoch_end": (2, (0, 1)),
+    "train_end": (1, (0, 1)),
+    "test": (2, (0, 1)),
+}
+TIMED = ("after_start", "after_first_checkpoint")
+
+
+# ---------------------------------------------------------------------------------------------- in the run
+class SignalAt(pl.Callback):
+    """A Lightning callback that sends ``signal`` from inside ``phase`` (its ``occurrence``-th time on
+    ``rank``) to this process (``target="rank"``) or to the run's whole process group (``"group"``).
+    ``stamp``: a file that receives the time it was sent. Given on the command line, e.g.
+    ``+callbacks.signal_at._target_=image2sphere.testing.preemption.SignalAt +callbacks.signal_at.phase=...``.
+    """
+
+    def __init__(self, phase: str, occurrence: int = 1, rank: int = 0, target: str = "rank",
+                 stamp: str | None = None, signum: int = int(signal.SIGTERM)):  # fmt: skip
+        if phase not in MOMENT_PHASES:
+            raise ValueError(f"phase must be one of {', '.join(MOMENT_PHASES)}, got {phase!r}")
+        if target not in ("rank", "group"):
+            raise ValueError(f"target must be rank or group, got {target!r}")
+        self.phase, self.occurrence, self.rank, self.target = phase, int(occurrence), int(rank), target
+        self.stamp, self.signum, self.seen = stamp, int(signum), 0
+
+    def _tick(self, trainer: Any, phase: str) -> None:
+        if phase != self.phase or trainer.global_rank != self.rank:
+            return
+        self.seen += 1
+        if self.seen != self.occurrence:
+            return
+        if self.stamp:
+            Path(self.stamp).write_text(f"{time.time()}\n")
+        if self.target == "group":
+            os.killpg(os.getpgrp(), self.signum)
+        else:
+            os.kill(os.getpid(), self.signum)
+
+    # the phases
+    def setup(self, trainer: Any, pl_module: Any, stage: str) -> None:
+        if stage != "fit":
+            return
+        self._tick(trainer, "fit_start")
+        io = trainer.strategy.checkpoint_io
+        save = io.save_checkpoint
+
+        def save_and_signal(*args: Any, **kwargs: Any) -> None:
+            self._tick(trainer, "checkpoint_write")  # the handler runs here, inside the write
+            return save(*args, **kwargs)
+
+        io.save_checkpoint = save_and_signal
+
+    def on_sanity_check_start(self, trainer: Any, pl_module: Any) -> None:
+        self._tick(trainer, "sanity_check")
+
+    def on_before_backward(self, trainer: Any, pl_module: Any, loss: Any) -> None:
+        self._tick(trainer, "forward_backward")
+
+    def on_train_start(self, trainer: Any, pl_module: Any) -> None:
+        for optimizer in trainer.optimizers:  # inside optimizer.step(), before the parameters change
+            optimizer.register_step_pre_hook(lambda *_: self._tick(trainer, "optimizer_step"))
+
+    def on_validation_batch_start(self, trainer: Any, *args: Any, **kwargs: Any) -> None:
+        if not trainer.sanity_checking:
+            self._tick(trainer, "validation")
+
+    def on_train_epoch_end(self, trainer: Any, pl_module: Any) -> None:
+        self._tick(trainer, "epoch_end")
+
+    def on_train_end(self, trainer: Any, pl_module: Any) -> None:
+        self._tick(trainer, "train_end")
+
+    def on_test_batch_start(self, trainer: Any, *args: Any, **kwargs: Any) -> None:
+        self._tick(trainer, "test")
+
+
+# ---------------------------------------------------------------------------------------------- the schedule
+@dataclass
+class Moment:
+    """Where the signal lands: a phase of :data:`MOMENT_PHASES` (its ``occurrence`` on ``rank``), or a
+    time of :data:`TIMED` (``delay`` seconds after the start or after the first ``last.ckpt``)."""
+
+    name: str
+    phase: str
+    target: str  # "rank0" or "group"
+    occurrence: int = 1
+    rank: int = 0
+    delay: float = 0.0
+
+    @property
+    def timed(self) -> bool:
+        return self.phase in TIMED
+
+
+def schedule(n: int, seed: int) -> list[Moment]:
+    """``n`` moments: every phase to rank 0 alone and to the whole group (at a seeded occurrence, sent by
+    a seeded rank), then moments timed from outside at seeded delays."""
+    rng = random.Random(seed)
+    moments = []
+    for phase, (count, ranks) in MOMENT_PHASES.items():
+        for target in ("rank0", "group"):
+            occurrence = rng.randint(1, count)
+            rank = 0 if target == "rank0" else rng.choice(ranks)
+            moments.append(Moment(f"{phase}#{occurrence}/{target}", phase, target, occurrence, rank))
+    i = 0
+    while len(moments) < n:
+        phase, target = TIMED[i % 2], ("rank0", "group")[(i // 2) % 2]
+        delay = round(rng.uniform(2.0, 10.0) if phase == "after_start" else rng.uniform(0.0, 4.0), 2)
+        moments.append(Moment(f"{phase}+{delay}s/{target}", phase, target, delay=delay))
+        i += 1
+    return moments[:n] if n < len(moments) else moments
+
+
+# ---------------------------------------------------------------------------------------------- the harness
+def group_alive(pgid: int) -> list[int]:
+    """The processes of group ``pgid`` that have not exited (zombies left out), read from ``/proc``."""
+    alive = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2 :].split()  # after "pid (comm) "
+        if fields[0] != "Z" and int(fields[2]) == pgid:
+            alive.append(int(entry.name))
+    return alive
+
+
+def end_group(pgid: int, dump: Path | None = None) -> None:
+    """Kill every process of group ``pgid`` (after dumping their Python stacks into ``dump`` with
+    ``py-spy``, when it is installed) and wait until none is left."""
+    pids = group_alive(pgid)
+    if dump is not None and pids and shutil.which("py-spy"):
+        with open(dump, "w") as f:
+            for pid in pids:
+                f.write(f"==== py-spy dump --pid {pid}\n")
+                f.flush()
+                subprocess.run(["py-spy", "dump", "--pid", str(pid)], stdout=f, stderr=subprocess.STDOUT, timeout=60)
+    try:
+        os.killpg(pgid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    deadline = time.monotonic() + 30
+    while group_alive(pgid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+
+
+def run_group(argv: list[str], log: Path, timeout: float, env: dict | None = None,
+              moment: Moment | None = None, watch: Path | None = None) -> dict:  # fmt: skip
+    """Run ``argv`` as a process group of its own, output to ``log``; for a timed ``moment``, send it
+    SIGTERM ``moment.delay`` s after the start or after ``watch`` appears. Returns the exit status of
+    its first process, when the last process of the group exited, and ``hung`` (killed at ``timeout``)."""
+    start = time.monotonic()
+    sent = None
+    with open(log, "w") as out:
+        proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+        pgid = proc.pid
+        try:
+            while time.monotonic() - start < timeout:
+                if moment is not None and moment.timed and sent is None:
+                    since = start if moment.phase == "after_start" else _appeared(watch)
+                    if since is not None and time.monotonic() - since >= moment.delay:
+                        sent = time.time()
+                        _send(proc.pid, pgid, moment.target)
+                proc.poll()
+                if proc.returncode is not None and not group_alive(pgid):
+                    return {"returncode": proc.returncode, "ended": time.time(), "sent": sent, "hung": False}
+                time.sleep(0.02)
+            end_group(pgid, dump=log.with_suffix(".stacks.txt"))
+            proc.wait()
+            return {"returncode": proc.returncode, "ended": time.time(), "sent": sent, "hung": True}
+        except BaseException:
+            end_group(pgid)
+            raise
+
+
+_FIRST_SEEN: dict[Path, float] = {}
+
+
+def _appeared(path: Path | None) -> float | None:
+    if path is None:
+        return None
+    if path not in _FIRST_SEEN and path.exists():
+        _FIRST_SEEN[path] = time.monotonic()
+    return _FIRST_SEEN.get(path)
+
+
+def _send(pid: int, pgid: int, target: str) -> None:
+    try:
+        if target == "group":
+            os.killpg(pgid, signal.SIGTERM)
+        else:
+            os.kill(pid, signal.SIGTERM)
+    except ProcessLookupError:
+        pass
+
+
+def train_argv(extra: list[str], data_dir: Path, run_dir: Path) -> list[str]:
+    return [sys.executable, "-m", "src.train", *RUN, f"paths.data_dir={data_dir}",
+            f"paths.log_dir={run_dir.parent / 'logs'}", f"hydra.run.dir={run_dir}", *extra]  # fmt: skip
+
+
+def signal_overrides(moment: Moment, stamp: Path) -> list[str]:
+    if moment.timed:
+        return []
+    key = "+callbacks.signal_at"
+    return [f"{key}._target_=image2sphere.testing.preemption.SignalAt", f"{key}.phase={moment.phase}",
+            f"{key}.occurrence={moment.occurrence}", f"{key}.rank={moment.rank}",
+            f"{key}.target={'group' if moment.target == 'group' else 'rank'}", f"{key}.stamp={stamp}"]  # fmt: skip
+
+
+def final_weights(run_dir: Path, resumed_from: Path) -> dict:
+    import torch
+
+    last = run_dir / "checkpoints" / "last.ckpt"
+    path = last if last.is_file() else resumed_from  # a resume of a finished training trains nothing
+    return torch.load(path, map_location="cpu", weights_only=True)
+
+
+def same_metrics(a: dict, b: dict, rel: float = 1e-5) -> list[str]:
+    """The metric keys whose values differ (timings left out)."""
+    keys = {k for k, v in a.items() if isinstance(v, float) and not k.endswith("_seconds")}
+    return sorted(k for k in keys if k not in b or not math.isclose(a[k], b[k], rel_tol=rel, abs_tol=1e-6))
+
+
+def check_moment(moment: Moment, root: Path, data_dir: Path, reference: Path, bound: float,
+                 env: dict | None = None) -> dict:  # fmt: skip
+    """Run one moment (stop, checks, resume) under ``root``; a dict of what was measured and ``problems``."""
+    import torch
+
+    from image2sphere.training.checkpoint import load_checkpoint
+
+    stopped, resumed = root / "stopped", root / "resumed"
+    stamp = root / "signal_sent"
+    ckpt = stopped / "checkpoints" / "last.ckpt"
+    result = run_group(train_argv(signal_overrides(moment, stamp), data_dir, stopped), root / "stopped.log",
+                       timeout=bound + 240, env=env, moment=moment, watch=ckpt)  # fmt: skip
+    sent = result["sent"] or (float(stamp.read_text()) if stamp.is_file() else None)
+    problems = []
+    out = (root / "stopped.log").read_text(errors="replace")
+    seconds = None if sent is None else result["ended"] - sent
+    if result["hung"]:
+        problems.append(f"the run did not exit: killed after {bound + 240:.0f} s (stacks in stopped.stacks.txt)")
+    elif sent is None:
+        problems.append("the moment was never reached: no signal was sent")
+    elif seconds > bound:
+        problems.append(f"the run took {seconds:.1f} s to exit after the signal (bound {bound:.0f} s)")
+    if not result["hung"] and result["returncode"] != 128 + signal.SIGTERM:
+        problems.append(f"rank 0 exited with {result['returncode']}, not {128 + signal.SIGTERM}")
+    if not result["hung"] and "stopped by SIGTERM" not in out.replace("Stopped", "stopped"):
+        problems.append("rank 0 did not say where it stopped")
+    leftovers = list((stopped / "checkpoints").glob("*.tmp-*")) if (stopped / "checkpoints").is_dir() else []
+    if leftovers:
+        problems.append(f"temporary files left: {[p.name for p in leftovers]}")
+    record = {**asdict(moment), "exit_seconds": seconds, "returncode": result["returncode"], "checkpoint": False}
+    if ckpt.is_file():
+        record["checkpoint"] = True
+        try:
+            saved = load_checkpoint(ckpt)
+            record["global_step"] = int(saved["global_step"])
+        except Exception as e:  # noqa: BLE001 - reported, not raised
+            problems.append(f"last.ckpt cannot be read: {e}")
+        else:
+            if f"ckpt_path={ckpt}" not in out:
+                problems.append("rank 0 did not name the checkpoint to go on from")
+            if not problems:
+                resume = run_group(train_argv([f"ckpt_path={ckpt}"], data_dir, resumed), root / "resumed.log",
+                                   timeout=600, env=env)  # fmt: skip
+                if resume["hung"] or resume["returncode"] != 0:
+                    problems.append(f"the resumed run failed ({resume['returncode']}, see resumed.log)")
+                else:
+                    a, b = final_weights(reference, ckpt), final_weights(resumed, ckpt)
+                    if a["global_step"] != b["global_step"]:
+                        problems.append(f"resumed run ended at step {b['global_step']}, not {a['global_step']}")
+                    for key, value in a["state_dict"].items():
+                        if not torch.allclose(b["state_dict"][key], value, rtol=1e-5, atol=1e-6):
+                            problems.append(f"resumed weights differ from the uninterrupted run's: {key}")
+                            break
+                    ref, got = (json.loads((d / "metrics.json").read_text()) for d in (reference, resumed))
+                    differ = same_metrics(ref, got)
+                    if differ:
+                        problems.append(f"resumed test metrics differ: {differ[:4]}")
+    record["problems"] = problems
+    return record
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--moments", type=int, default=22, help="how many moments (>= 18 covers every phase twice)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the schedule")
+    parser.add_argument("--only", nargs="*", default=None, help="names of the schedule's moments to run")
+    parser.add_argument("--bound", type=float, default=60.0, help="seconds a run may take to exit after the signal")
+    parser.add_argument("--out", type=Path, default=None, help="folder for the runs (default: a new temporary one)")
+    parser.add_argument("--keep", action="store_true", help="keep the runs' folders of moments that passed")
+    args = parser.parse_args(argv)
+    if not Path("src/train.py").is_file():
+        parser.error("run it from the repository root (python -m src.train must work there)")
+    import tempfile
+
+    out = args.out or Path(tempfile.mkdtemp(prefix="preemption-"))
+    out.mkdir(parents=True, exist_ok=True)
+    if any(out.iterdir()):
+        parser.error(f"--out {out} is not empty; name a new folder")
+    moments = schedule(args.moments, args.seed)
+    if args.only is not None:
+        moments = [m for m in moments if m.name in args.only]
+    env = {**os.environ, "WANDB_SILENT": "true"}
+    data_dir, reference = out / "data", out / "reference" / "run"
+    reference.parent.mkdir()
+    started = time.monotonic()
+    ref = run_group(train_argv([], data_dir, reference), out / "reference" / "run.log", timeout=900, env=env)
+    if ref["hung"] or ref["returncode"] != 0:
+        print(f"the uninterrupted run failed ({ref['returncode']}): see {out / 'reference' / 'run.log'}")
+        return 1
+    print(f"uninterrupted run: {time.monotonic() - started:.0f} s; {len(moments)} moments, seed {args.seed}")
+    records = []
+    for i, moment in enumerate(moments):
+        root = out / f"{i:02d}"
+        root.mkdir()
+        t0 = time.monotonic()
+        record = check_moment(moment, root, data_dir, reference, args.bound, env=env)
+        record["seconds"] = round(time.monotonic() - t0, 1)
+        records.append(record)
+        exit_s = "-" if record["exit_seconds"] is None else f"{record['exit_seconds']:.1f}"
+        status = "ok" if not record["problems"] else "FAIL: " + "; ".join(record["problems"])
+        print(f"{i:2d} {moment.name:42s} exit {exit_s:>5s} s  ckpt {'yes' if record['checkpoint'] else 'no ':3s}  "
+              f"{status}", flush=True)  # fmt: skip
+        if not record["problems"] and not args.keep:
+            shutil.rmtree(root)
+    (out / "results.json").write_text(json.dumps(records, indent=2))
+    failed = [r for r in records if r["problems"]]
+    exits = [r["exit_seconds"] for r in records if r["exit_seconds"] is not None]
+    print(f"{len(records) - len(failed)} of {len(records)} moments passed in {time.monotonic() - started:.0f} s; "
+          f"slowest exit after the signal {max(exits, default=float('nan')):.1f} s (bound {args.bound:.0f} s); "
+          f"results in {out / 'results.json'}")  # fmt: skip
+    return len(failed)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -84,10 +84,12 @@ def test_predict_prints_modes_and_writes_the_plot_next_to_the_image(trained, tmp
     assert "mode 1: mass" in proc.stdout and "YXY angles" in proc.stdout
     plot = tmp_path / "cube_so3.png"
     assert plot.read_bytes()[:4] == b"\x89PNG"
-    # the plot is never overwritten; output= chooses another file
-    proc = _run("src.predict", [f"ckpt_path={ckpt}", f"image={image}", "eval_grid_level=3",
-                                f"hydra.run.dir={tmp_path / 'run2'}"], check=False)  # fmt: skip
-    assert proc.returncode != 0 and "choose another output=" in proc.stderr
+    # the same command again predicts again; the plot is never overwritten: it gets the next free name
+    first = plot.read_bytes()
+    proc = _run("src.predict", [f"ckpt_path={ckpt}", f"image={image}", "top_k=3", "eval_grid_level=3",
+                                f"hydra.run.dir={tmp_path / 'run2'}"])  # fmt: skip
+    assert "mode 1: mass" in proc.stdout and f"plot: {tmp_path / 'cube_so3-1.png'} ({plot} exists" in proc.stdout
+    assert plot.read_bytes() == first and (tmp_path / "cube_so3-1.png").read_bytes()[:4] == b"\x89PNG"
     _run("src.predict", [f"ckpt_path={ckpt}", f"image={image}", "eval_grid_level=3", f"output={tmp_path / 'other.png'}",
                          f"hydra.run.dir={tmp_path / 'run3'}"])  # fmt: skip
     assert (tmp_path / "other.png").is_file()

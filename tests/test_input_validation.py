@@ -245,17 +245,22 @@ def test_predict_checks_its_arguments_before_loading_anything(photo, tmp_path):
 
 
 # ---------------------------------------------------------------------------------- plot files
-def test_predict_writes_the_format_the_extension_names_and_never_overwrites(checkpoint, photo, tmp_path, capsys):
+def test_predict_writes_the_format_the_extension_names_and_never_overwrites_a_file(checkpoint, photo, tmp_path, capsys):
     out = predict(str(checkpoint), str(photo), level=2, output=str(tmp_path / "x.jpg"))
     assert out["plot"] == tmp_path / "x.jpg" and (tmp_path / "x.jpg").read_bytes()[:2] == b"\xff\xd8"
     assert "mode 1: mass" in capsys.readouterr().out
     default = predict(str(checkpoint), str(photo), level=2)["plot"]
     assert default == tmp_path / "photo_so3.png" and default.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    # an existing file of either kind is never overwritten
+    # an existing file of either kind is never overwritten, nor a reason to stop: the plot gets the next free
+    # name, which the printed line gives, and the modes are printed again
+    capsys.readouterr()
     (tmp_path / "keep.jpg").write_bytes(b"mine")
-    with pytest.raises(FileExistsError, match="choose another output="):
-        predict(str(checkpoint), str(photo), level=2, output=str(tmp_path / "keep.jpg"))
-    assert (tmp_path / "keep.jpg").read_bytes() == b"mine"
+    (tmp_path / "keep-1.jpg").write_bytes(b"mine too")
+    out = predict(str(checkpoint), str(photo), level=2, output=str(tmp_path / "keep.jpg"))
+    assert out["plot"] == tmp_path / "keep-2.jpg" and out["plot"].read_bytes()[:2] == b"\xff\xd8"
+    printed = capsys.readouterr().out
+    assert "mode 1: mass" in printed and f"plot: {tmp_path / 'keep-2.jpg'} ({tmp_path / 'keep.jpg'} exists" in printed
+    assert (tmp_path / "keep.jpg").read_bytes() == b"mine" and (tmp_path / "keep-1.jpg").read_bytes() == b"mine too"
 
 
 def test_save_figure_follows_the_extension(tmp_path):

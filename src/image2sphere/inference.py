@@ -29,7 +29,7 @@ from image2sphere.so3.grid_eval import check_streamed_level
 from image2sphere.so3.rotations import matrix_to_angles
 from image2sphere.training.checkpoint import build_module, load_checkpoint
 
-__all__ = ["Predictor", "format_modes", "predict"]
+__all__ = ["Predictor", "format_modes", "free_path", "predict"]
 
 log = logging.getLogger(__name__)
 
@@ -175,9 +175,11 @@ def predict(
     """Print the top-k modes of the distribution for one image and write its plot.
 
     The plot goes to ``output`` or, by default, next to the image as ``<image stem>_so3.png``, in the
-    format its extension names (``.png``, ``.jpg``, ``.pdf``, ``.svg``, ...); an existing file is never
-    overwritten. ``threshold``: a probability in ``(0, 1]``, or ``None`` for the default (ten times the
-    uniform probability). When no grid point reaches it, a line says so and the plot is drawn empty.
+    format its extension names (``.png``, ``.jpg``, ``.pdf``, ``.svg``, ...). An existing file is never
+    overwritten and never stops the prediction: the plot then goes to the first free name
+    ``<stem>-1<ext>``, ``<stem>-2<ext>``, ... (:func:`free_path`), and the printed ``plot:`` line says so.
+    ``threshold``: a probability in ``(0, 1]``, or ``None`` for the default (ten times the uniform
+    probability). When no grid point reaches it, a line says so and the plot is drawn empty.
     ``recalibration``: ``auto`` applies the temperature stored in the checkpoint, if any; ``off`` shows the
     distribution as the network predicts it. Arguments are checked before the checkpoint is loaded.
     Returns ``{"rotations", "mass", "plot"}`` (no modes: ``(0, 3, 3)`` and ``(0,)``).
@@ -187,10 +189,8 @@ def predict(
     image_path = Path(image)
     if not image_path.is_file():
         raise FileNotFoundError(f"image not found: {image_path}")
-    plot_path = Path(output) if output else image_path.with_name(f"{image_path.stem}_so3.png")
-    figure_format(plot_path, "output")
-    if plot_path.exists():
-        raise FileExistsError(f"{plot_path} exists; choose another output=<path.png>")
+    asked = Path(output) if output else image_path.with_name(f"{image_path.stem}_so3.png")
+    figure_format(asked, "output")
     level = check_streamed_level(level)
     check_int("top_k", top_k, 1)
     if isinstance(radius_deg, bool) or not isinstance(radius_deg, (int, float)) or not 0 < radius_deg < 180:
@@ -213,6 +213,26 @@ def predict(
         print(f"{image_path}: no modes: no grid point reaches threshold={threshold:g} at level {level} (the most "
               f"probable point has p = {top:.3g}); lower the threshold, or leave it null for the default")  # fmt: skip
     fig = plot_so3_distribution(dist, level=level, threshold=threshold, title=image_path.name)
-    save_figure(fig, plot_path)
-    print(f"plot: {plot_path}")
+    while True:
+        plot_path = free_path(asked)
+        try:
+            save_figure(fig, plot_path)  # "x" mode: a file that appeared since free_path is not overwritten
+            break
+        except FileExistsError:
+            if not plot_path.exists():  # not a file written meanwhile (e.g. the folder's name is a file)
+                raise
+    kept = "" if plot_path == asked else f" ({asked} exists and is kept: the plot got the next free name)"
+    print(f"plot: {plot_path}{kept}")
     return {"rotations": rotations, "mass": mass, "plot": plot_path}
+
+
+def free_path(path: str | Path) -> Path:
+    """``path`` if no file is there, else the first of ``<stem>-1<suffix>``, ``<stem>-2<suffix>``, ... that
+    does not exist (the same folder and extension)."""
+    path = Path(path)
+    if not path.exists():
+        return path
+    number = 1
+    while (candidate := path.with_name(f"{path.stem}-{number}{path.suffix}")).exists():
+        number += 1
+    return candidate

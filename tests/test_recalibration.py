@@ -2,15 +2,18 @@
 
 Quick tier: tempering against a dense reference for every kind of family (the Fourier family's own
 override, the matrix Fisher family's closed form, the generic grid tempering), its invariants (mode and
-order unchanged, composition, temperature 1), the checks of bad temperatures and stored fits, and the
-fit recovering a known temperature from data drawn at that temperature. Whole-run behaviour (the fit
-after training, the checkpoint, eval's fit/off, predict) is in the slow tests at the end, on the tiny run.
+order unchanged, composition, temperature 1), the checks of bad temperatures and stored fits, the
+fit recovering a known temperature from data drawn at that temperature, and a fit at a bound of the search
+kept at T = 1 (degenerate). Whole-run behaviour (the fit after training, the checkpoint, eval's fit/off and
+refit, predict) is in the slow tests at the end, on the tiny run.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
+import sys
 
 import pytest
 import torch
@@ -148,11 +151,13 @@ def _drawn_at(temperature: float, n: int = 240, seed: int = 0) -> list[ScoredPai
 
 
 @pytest.mark.parametrize("true_temperature", [0.5, 2.0])
-def test_the_fit_recovers_the_temperature_the_data_were_drawn_at(true_temperature):
+def test_the_fit_recovers_the_temperature_the_data_were_drawn_at(true_temperature, caplog):
     """Maximum likelihood over 240 images recovers the temperature the truths were drawn at (to 20 %),
     the log likelihood rises and the calibration error falls to that of a calibrated model."""
     batches = _drawn_at(true_temperature)
-    fit = fit_temperature(batches, level=3)
+    with caplog.at_level("WARNING", logger="image2sphere.recalibration"):
+        fit = fit_temperature(batches, level=3)
+    assert not fit.degenerate and not caplog.records  # inside the bounds: no warning
     assert fit.temperature == pytest.approx(true_temperature, rel=0.2)
     assert fit.log_likelihood_after > fit.log_likelihood_before
     assert fit.ece_before > 0.1 and fit.ece_after < 0.06
@@ -182,6 +187,47 @@ def test_every_class_weighs_the_same_and_each_gets_its_own_diagnostic_temperatur
     # a pooled mean over pairs would follow the 240-image class much more closely
     pooled = fit_temperature([sharp, broad], level=3)
     assert pooled.temperature < fit.temperature
+
+
+def _pairs(model, truths: torch.Tensor) -> list[ScoredPairs]:
+    n = len(truths)
+    mask = torch.ones(n, 1, dtype=torch.bool)
+    return [
+        ScoredPairs(model, truths[:, None], mask, tie_break_uniforms(range(n), 1), torch.zeros(n, dtype=torch.long))
+    ]
+
+
+@pytest.mark.parametrize("bound", ["upper", "lower"])
+def test_a_fit_at_a_search_bound_is_degenerate_and_keeps_temperature_one(bound, caplog):
+    """Truths drawn independently of sharp distributions: flattening them towards uniform scores best, so the
+    search runs to the upper bound 50; truths exactly at the grid mode: sharpening scores best without limit
+    (the lower bound 1/50). Either way the fit warns, saying what the bound means, and keeps T = 1 (the
+    model's own figures before and after), recording the bound it reached."""
+    model = fisher(seed=2, batch=24, scale=4.0)
+    truths = haar_rotations(24, seed=7) if bound == "upper" else model.mode(LEVEL)
+    with caplog.at_level("WARNING", logger="image2sphere.recalibration"):
+        fit = fit_temperature(_pairs(model, truths), level=LEVEL)
+    assert fit.degenerate and fit.temperature == 1.0
+    assert fit.degenerate_temperature == pytest.approx(50.0 if bound == "upper" else 0.02, rel=0.03)
+    assert (fit.log_likelihood_after, fit.ece_after) == (fit.log_likelihood_before, fit.ece_before)
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert "Recalibration is degenerate" in warning and "T = 1 is kept" in warning
+    meaning = "carries no information on the val split" if bound == "upper" else "sharpened without limit"
+    assert meaning in warning and f"{bound} bound" in warning
+    assert fit.describe().startswith("no temperature (T = 1 kept)") and "degenerate" in fit.describe()
+    # stored and read back as such; a record written before the field existed reads as not degenerate
+    assert Recalibration.from_dict(fit.to_dict()) == fit
+    old = {k: v for k, v in fit.to_dict().items() if k != "degenerate_temperature"}
+    assert not Recalibration.from_dict(old).degenerate
+
+
+def test_same_temperature_allows_the_search_tolerance_only():
+    fit = Recalibration(0.5, 4, "val", 10, 12, 1.0, 1.2, 0.2, 0.01)
+    assert fit.same_temperature(fit) and fit.same_temperature(dataclasses.replace(fit, temperature=0.505))
+    assert not fit.same_temperature(dataclasses.replace(fit, temperature=0.55)) and not fit.same_temperature(None)
+    degenerate = dataclasses.replace(fit, temperature=1.0, degenerate_temperature=49.8)
+    assert degenerate.same_temperature(dataclasses.replace(degenerate, degenerate_temperature=0.02))
+    assert not degenerate.same_temperature(dataclasses.replace(fit, temperature=1.0))
 
 
 def test_the_fit_sums_over_processes_with_reduce():
@@ -215,33 +261,56 @@ def test_the_training_run_fits_stores_and_reports_the_recalibration(tiny_run):
 
 
 @pytest.mark.slow
-def test_eval_applies_fits_and_turns_off_the_recalibration(tiny_run, tmp_path):
-    """src.eval: auto reports the stored temperature's metrics; off reports none; fit writes a new
-    checkpoint beside a copy of the original (never replacing one), whose temperature the next eval uses."""
+def test_eval_applies_fits_and_turns_off_the_recalibration(tiny_run, tmp_path, monkeypatch):
+    """src.eval: auto reports the stored temperature's metrics; off reports none; fit on a checkpoint without
+    a temperature writes a new checkpoint beside it (never replacing one), whose temperature the next eval
+    uses; fit on a checkpoint that has one says so and writes nothing when the refit gives the same."""
     import shutil
+
+    import image2sphere.training.module as module_code
 
     ckpt = tmp_path / "last.ckpt"
     shutil.copy(tiny_run / "checkpoints" / "last.ckpt", ckpt)
-    original = ckpt.read_bytes()
-    base = ["eval_grid_level=3", "plots=0", "logger=none", "trainer.accelerator=cpu", f"ckpt_path={ckpt}"]
+    base = ["eval_grid_level=3", "plots=0", "logger=none", "trainer.accelerator=cpu"]
 
-    def run_eval(*args):
+    def run_eval(path, *args, check=True):
         out = tmp_path / f"eval{len(list(tmp_path.glob('eval*')))}"
-        run_module(["python", "-m", "src.eval", *base, *args, f"hydra.run.dir={out}"])
-        return json.loads((out / "metrics.json").read_text())
+        proc = run_module([sys.executable, "-m", "src.eval", *base, f"ckpt_path={path}", *args,
+                           f"hydra.run.dir={out}"], check=check)  # fmt: skip
+        metrics = out / "metrics.json"
+        return proc, json.loads(metrics.read_text()) if metrics.is_file() else None
 
-    auto, off = run_eval(), run_eval("recalibration=off")
+    (_, auto), (_, off) = run_eval(ckpt), run_eval(ckpt, "recalibration=off")
     assert "log_likelihood_calibrated" in auto and "log_likelihood_calibrated" not in off
     assert auto["log_likelihood"] == pytest.approx(off["log_likelihood"])  # the model's own, both times
-    fitted = run_eval("recalibration=fit")
-    target = tmp_path / "last.recalibrated.ckpt"
-    assert target.is_file() and ckpt.read_bytes() == original
+
+    # the tiny run's own fit may be degenerate (T = 1, nothing written): a fit of T = 0.5 stands in for it
+    real_fit = module_code.fit_temperature
+    fit_half = lambda *a, **k: dataclasses.replace(real_fit(*a, **k), temperature=0.5, degenerate_temperature=None)  # noqa: E731
+    monkeypatch.setattr(module_code, "fit_temperature", fit_half)
+    bare = tmp_path / "bare.ckpt"  # the checkpoint without its temperature
+    torch.save({k: v for k, v in torch.load(ckpt, weights_only=True).items() if k != "recalibration"}, bare)
+    original = bare.read_bytes()
+    _, fitted = run_eval(bare, "recalibration=fit")
+    target = tmp_path / "bare.recalibrated.ckpt"
+    assert target.is_file() and bare.read_bytes() == original
     stored = torch.load(target, map_location="cpu", weights_only=True)["recalibration"]
-    assert fitted["temperature"] == pytest.approx(stored["temperature"])
-    again = run_module(["python", "-m", "src.eval", *base, "recalibration=fit", f"hydra.run.dir={tmp_path / 'x'}"],
-                       check=False)  # fmt: skip
+    assert fitted["temperature"] == stored["temperature"] == 0.5
+    again, _ = run_eval(bare, "recalibration=fit", check=False)
     assert again.returncode != 0 and "already exists" in again.stderr + again.stdout
-    assert not (tmp_path / "x" / "metrics.json").exists()
+    # fit on the checkpoint that has the temperature: it says so, the same temperature comes out, no copy
+    proc, refitted = run_eval(target, "recalibration=fit")
+    out = proc.stdout + proc.stderr
+    assert "already holds a recalibration" in out and "nothing written: the fit gives the temperature" in out
+    assert refitted["temperature"] == 0.5 and not (tmp_path / "bare.recalibrated.recalibrated.ckpt").exists()
+    # the same without a stand-in: the tiny run's own checkpoint refitted on its own split (degenerate or not)
+    monkeypatch.setattr(module_code, "fit_temperature", real_fit)
+    proc, refitted = run_eval(ckpt, "recalibration=fit")
+    assert (
+        "already holds a recalibration" in proc.stdout + proc.stderr and "nothing written" in proc.stdout + proc.stderr
+    )
+    assert refitted["temperature"] == pytest.approx(auto["temperature"], rel=0.03)
+    assert not (tmp_path / "last.recalibrated.ckpt").exists()
 
 
 def test_the_reliability_diagram_draws_the_recalibrated_curve(tiny_run):
@@ -267,6 +336,30 @@ def test_a_run_without_a_validation_split_trains_tests_and_fits_nothing(tmp_path
     assert "recalibration" not in torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     metrics = read_metrics(run)
     assert "log_likelihood" in metrics and "temperature" not in metrics and "log_likelihood_calibrated" not in metrics
+
+
+@pytest.mark.slow  # a training run: about 3 to 5 s
+def test_a_degenerate_fit_after_training_keeps_temperature_one_and_says_so(tmp_path, monkeypatch):
+    """src.train's fit after training goes through the same rule: here the search is confined to [0.99, 1.01],
+    so it ends at a bound. The run warns, stores T = 1 with the bound it reached, and its recalibrated figures
+    are the model's own."""
+    import functools
+
+    import image2sphere.training.module as module_code
+
+    monkeypatch.setattr(module_code, "fit_temperature", functools.partial(fit_temperature, bounds=(0.99, 1.01)))
+    run = tmp_path / "run"
+    proc = run_train(["trainer.max_epochs=1", "logger=none", f"hydra.run.dir={run}"], tmp_path / "data",
+                     tmp_path / "logs")  # fmt: skip
+    out = proc.stdout + proc.stderr
+    assert "Recalibration is degenerate: the fitted temperature" in out and "T = 1 is kept" in out
+    assert "Recalibration: no temperature (T = 1 kept)" in out
+    stored = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)["recalibration"]
+    assert stored["temperature"] == 1.0 and stored["degenerate_temperature"] == pytest.approx(1.0, abs=0.011)
+    metrics = read_metrics(run)
+    assert metrics["temperature"] == 1.0
+    assert metrics["log_likelihood_calibrated"] == pytest.approx(metrics["log_likelihood"])
+    assert metrics["calibration_ece_calibrated"] == pytest.approx(metrics["calibration_ece"])
 
 
 @pytest.mark.slow

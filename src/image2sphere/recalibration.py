@@ -17,6 +17,14 @@ Conventions
   search is a bounded one-dimensional search on ``log T`` (scipy's ``minimize_scalar``) over the grid
   values of every validation image, computed once (at most ``MAX_FIT_BYTES``: a coarser grid is used for a
   split too large for the test's grid, :func:`fit_level`); ``T = 1`` is kept when nothing beats it.
+* A fit that ends at a bound of the search (within ``2 xatol`` of it on ``log T``) is **degenerate**: at the
+  upper bound the validation log likelihood keeps rising as every distribution is flattened towards the
+  uniform one, i.e. the model's density carries no information on that split; at the lower bound it keeps
+  rising as they are sharpened without limit (the validation rotations sit at the modes, e.g. a few images
+  the model has memorised). Either way the value is an artefact of the bound, not a calibration: a warning
+  says so, and the fit keeps ``T = 1`` (the model's own distribution), recording the bound it reached in
+  ``degenerate_temperature``. The train and eval paths both go through :func:`fit_temperature`, so both
+  store this ``T = 1`` record instead of the bound.
 * The fit also reports the validation ECE before and after (the mean over classes, the tie-break
   uniforms drawn per image as the test draws them), and, as a diagnostic, the temperature each class
   alone would get (``class_temperatures``): far apart, they say that one temperature cannot calibrate
@@ -28,6 +36,7 @@ Conventions
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
@@ -43,11 +52,14 @@ from image2sphere.so3.grid import MAX_DENSE_LEVEL, check_level, so3_grid_size, s
 __all__ = [
     "TEMPERATURE_BOUNDS",
     "Recalibration",
+    "degenerate_fit_message",
     "ScoredPairs",
     "fit_level",
     "fit_temperature",
     "score_temperature",
 ]
+
+log = logging.getLogger(__name__)
 
 #: the temperatures searched: from 50 times sharper to 50 times broader
 TEMPERATURE_BOUNDS = (0.02, 50.0)
@@ -70,7 +82,8 @@ class ScoredPairs(NamedTuple):
 @dataclass(frozen=True)
 class Recalibration:
     """A fitted temperature and what it did on the split it was fitted on (stored in checkpoints as a
-    plain dict, :meth:`to_dict`)."""
+    plain dict, :meth:`to_dict`). ``degenerate_temperature``: where the search ended when it ended at a
+    bound (the fit is degenerate, module docstring; ``temperature`` is then 1), else ``None``."""
 
     temperature: float
     grid_level: int
@@ -82,6 +95,12 @@ class Recalibration:
     ece_before: float
     ece_after: float
     class_temperatures: tuple[float, ...] = ()
+    degenerate_temperature: float | None = None
+
+    @property
+    def degenerate(self) -> bool:
+        """Whether the search ended at a bound (``temperature`` is then 1: no recalibration)."""
+        return self.degenerate_temperature is not None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -91,13 +110,15 @@ class Recalibration:
         """Back from :meth:`to_dict`; ``ValueError`` naming ``source`` when a field is missing or wrong."""
         if not isinstance(data, dict):
             raise ValueError(f"the recalibration stored in {source} is not a dict: {type(data).__name__}")
-        missing = sorted(set(cls.__dataclass_fields__) - set(data) - {"class_temperatures"})
+        missing = sorted(set(cls.__dataclass_fields__) - set(data) - {"class_temperatures", "degenerate_temperature"})
         if missing:
             raise ValueError(f"the recalibration stored in {source} lacks {', '.join(missing)}")
         fields = {k: data[k] for k in cls.__dataclass_fields__ if k in data}
         fields["class_temperatures"] = tuple(float(t) for t in fields.get("class_temperatures", ()))
         try:
             check_temperature(fields["temperature"], f"the temperature stored in {source}")
+            if fields.get("degenerate_temperature") is not None:
+                check_temperature(fields["degenerate_temperature"], f"the degenerate temperature stored in {source}")
             check_level(fields["grid_level"], name=f"the grid level stored in {source}")
         except ValueError as e:
             raise ValueError(f"{e}; fit it again with recalibration=fit") from None
@@ -105,13 +126,60 @@ class Recalibration:
 
     def describe(self) -> str:
         """One line for the log."""
-        return (
-            f"temperature {self.temperature:.4g} fitted on the {self.split} split ({self.n_images} images, "
-            f"{self.n_pairs} pairs, grid level {self.grid_level}): log likelihood {self.log_likelihood_before:.3f} "
-            f"-> {self.log_likelihood_after:.3f}, ECE {self.ece_before:.3f} -> {self.ece_after:.3f}"
-            + (f"; each class alone: {', '.join(f'{t:.3g}' for t in self.class_temperatures)}"
-               if len(self.class_temperatures) > 1 else "")
-        )  # fmt: skip
+        where = f"the {self.split} split ({self.n_images} images, {self.n_pairs} pairs, grid level {self.grid_level})"
+        if self.degenerate:
+            head = (
+                f"no temperature (T = 1 kept): the fit on {where} ended at the search bound, "
+                f"T = {self.degenerate_temperature:.4g} (degenerate, see the warning): log likelihood "
+                f"{self.log_likelihood_before:.3f}, ECE {self.ece_before:.3f}"
+            )
+        else:
+            head = (
+                f"temperature {self.temperature:.4g} fitted on {where}: log likelihood "
+                f"{self.log_likelihood_before:.3f} -> {self.log_likelihood_after:.3f}, "
+                f"ECE {self.ece_before:.3f} -> {self.ece_after:.3f}"
+            )
+        if len(self.class_temperatures) < 2:
+            return head
+        each = ", ".join(f"{t:.3g}" + (" (a bound)" if _at_bound(t) else "") for t in self.class_temperatures)
+        return f"{head}; each class alone: {each}"
+
+    def same_temperature(self, other: Recalibration | None, xatol: float = 0.01) -> bool:
+        """Whether ``other`` holds the same recalibration up to the search's tolerance: both degenerate, or
+        neither and their temperatures within ``2 xatol`` on ``log T`` (a refit of the same weights on the
+        same split lands there)."""
+        if other is None or self.degenerate != other.degenerate:
+            return False
+        return self.degenerate or abs(math.log(self.temperature / other.temperature)) <= 2 * xatol
+
+
+def _at_bound(temperature: float, bounds: tuple[float, float] = TEMPERATURE_BOUNDS, xatol: float = 0.01) -> bool:
+    """Whether ``temperature`` is within ``2 xatol`` of a bound on ``log T`` (where the bounded search ends
+    when the log likelihood keeps rising towards that bound)."""
+    return any(abs(math.log(temperature / b)) <= 2 * xatol for b in bounds)
+
+
+def degenerate_fit_message(
+    temperature: float, split: str = "val", bounds: tuple[float, float] = TEMPERATURE_BOUNDS
+) -> str:
+    """The warning for a fit that ended at a bound (module docstring): what the bound means, and what is kept."""
+    low, high = bounds
+    if abs(math.log(temperature / high)) < abs(math.log(temperature / low)):
+        meaning = (
+            f"at the upper bound {high:g}: the {split} log likelihood keeps rising as every distribution is "
+            f"flattened towards uniform, i.e. the model's density carries no information on the {split} split "
+            "(a model that has not learned, or too few validation images)"
+        )
+    else:
+        meaning = (
+            f"at the lower bound {low:g}: the {split} log likelihood keeps rising as every distribution is "
+            f"sharpened without limit, i.e. the {split} rotations sit at the modes (too few validation images, "
+            "or images the model has memorised)"
+        )
+    return (
+        f"Recalibration is degenerate: the fitted temperature {temperature:.4g} is {meaning}. It is not used: "
+        "T = 1 is kept (the model's own distribution) and stored as such"
+    )
 
 
 def _class_means(sums: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
@@ -205,7 +273,8 @@ def fit_temperature(
     Each distribution's values on the grid are computed once; the search then only rescales them (the
     log likelihood of a pair at temperature ``T`` is ``v / T - logsumexp(grid / T) + log N - log(pi^2)``).
     ``xatol``: the search's tolerance on ``log T`` (0.01: T to within 1 %). The ECE before and after is
-    then scored by two streamed sweeps (:func:`score_temperature`).
+    then scored by two streamed sweeps (:func:`score_temperature`). A search that ends at a bound is
+    degenerate (module docstring): a warning, and ``T = 1`` with ``degenerate_temperature`` set.
     """
     from scipy.optimize import minimize_scalar
 
@@ -249,6 +318,10 @@ def fit_temperature(
         return float(_class_means(sums, counts).mean())
 
     temperature = search(headline)
+    degenerate = None
+    if temperature != 1.0 and _at_bound(temperature, (low, high), xatol):
+        log.warning(degenerate_fit_message(temperature, split, (low, high)))
+        degenerate, temperature = temperature, 1.0
     _, counts = class_log_likelihoods(1.0)
     present = [c for c in range(num_classes) if counts[c] > 0]
     per_class = tuple(search(lambda t, c=c: float(class_log_likelihoods(t)[0][c] / counts[c])) for c in present)
@@ -266,4 +339,5 @@ def fit_temperature(
         ece_before=before[1],
         ece_after=after[1],
         class_temperatures=per_class if len(per_class) > 1 else (),
+        degenerate_temperature=degenerate,
     )

@@ -9,7 +9,8 @@ nominal mass, per class and the class mean) and ``plots/test_<i>.png`` (the dist
 to the configured logger. The recalibration stored in the checkpoint is applied unless
 ``recalibration=off`` (the metrics then have a before and an after); ``recalibration=fit`` fits it on
 the dataset's validation split first and writes the checkpoint with it to ``<name>.recalibrated.ckpt``
-beside the original (docs/evaluation.md#recalibration).
+beside the original, only when that file would hold something new: not for a degenerate fit (no
+temperature), nor when the checkpoint already holds the same temperature (docs/evaluation.md#recalibration).
 """
 
 from __future__ import annotations
@@ -106,7 +107,9 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     if recalibration == "off":
         module.recalibration = None
     elif recalibration == "fit":
-        _fit_and_store_recalibration(module, datamodule, trainer, ckpt, target)
+        _fit_and_store_recalibration(module, datamodule, trainer, ckpt, str(cfg.ckpt_path), target)
+    elif module.recalibration is not None:
+        log.info("Recalibration stored in %s: %s", cfg.ckpt_path, module.recalibration.describe())
     start = time.perf_counter()
     with ddp_children_run_this_job():  # in a multirun job, the other DDP ranks start as this job
         trainer.test(model=module, datamodule=datamodule)
@@ -141,9 +144,21 @@ def recalibrated_path(ckpt_path: str | Path) -> Path:
     return path.with_name(f"{path.stem}.recalibrated.ckpt")
 
 
-def _fit_and_store_recalibration(module, datamodule, trainer: pl.Trainer, ckpt: dict, target: Path) -> None:
+def _fit_and_store_recalibration(
+    module, datamodule, trainer: pl.Trainer, ckpt: dict, source: str, target: Path
+) -> None:
     """Fit the temperature on the dataset's validation split and write the checkpoint with it to
-    ``target`` (a new file; the original is not touched)."""
+    ``target`` (a new file; the original, ``source``, is not touched) when it holds something the original does not:
+    nothing is written for a degenerate fit (``T = 1``, as ``recalibration=off``) or when the checkpoint
+    already holds the same temperature (a refit of the same weights on the same split), which is then
+    used as stored. Each case is said in the log."""
+    stored = module.recalibration  # from the checkpoint (None: it has none)
+    if stored is not None:
+        log.warning(
+            "%s already holds a recalibration (%s), which recalibration=auto applies; fitting again as "
+            "recalibration=fit asks: %s is written only if the fit gives another temperature",
+            source, stored.describe(), target.name,
+        )  # fmt: skip
     datamodule.setup("fit")
     loader = datamodule.val_dataloader()
     if not loader:
@@ -153,9 +168,24 @@ def _fit_and_store_recalibration(module, datamodule, trainer: pl.Trainer, ckpt: 
             "dataset.val_per_class for PASCAL3D+) or evaluate with recalibration=auto or off"
         )
     fitted = fit_recalibration_on(trainer, module, loader)
-    if fitted is not None and trainer.is_global_zero:
+    if fitted is None:  # a point regressor
+        return
+    if fitted.degenerate:
+        log.warning(
+            "recalibration=fit: nothing written: the fit is degenerate (T = 1 kept, the warning above says why), "
+            "and a checkpoint with T = 1 would evaluate as recalibration=off does"
+        )
+    elif fitted.same_temperature(stored):
+        module.recalibration = stored  # the metrics are those recalibration=auto gives
+        log.warning(
+            "recalibration=fit: nothing written: the fit gives the temperature %s already holds (%.4g, stored "
+            "%.4g); evaluate it with recalibration=auto",
+            source, fitted.temperature, stored.temperature,
+        )  # fmt: skip
+    elif trainer.is_global_zero:
         AtomicCheckpointIO().save_checkpoint({**ckpt, "recalibration": fitted.to_dict()}, target)
-        log.info("The checkpoint with its recalibration: %s", target)
+        replaced = "" if stored is None else f" (instead of the stored {stored.temperature:.4g})"
+        log.info("The checkpoint with its recalibration, temperature %.4g%s: %s", fitted.temperature, replaced, target)
 
 
 def _plot_reliability(metrics: dict, class_names: list[str], title: str, path: Path, loggers: list) -> None:

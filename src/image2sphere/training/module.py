@@ -230,7 +230,9 @@ class PoseEstimationModule(pl.LightningModule):
             ll, argmax = pairs.log_density, pairs.argmax  # [B, M], NaN on padding; [B]
             out["hdr_counts"] = hdr_coverage_counts(pairs.hdr_level, mask)  # [B, len(HDR_LEVELS)]
             if self.recalibration is not None:  # the same pairs under the recalibrated distribution
-                tempered = density_pairs(dist.tempered(self.recalibration.temperature), targets, mask, level, u)
+                temperature, tempered = self.recalibration.temperature, pairs  # T = 1 (a degenerate fit): the same
+                if temperature != 1.0:
+                    tempered = density_pairs(dist.tempered(temperature), targets, mask, level, u)
                 out["ll_calibrated_sum"] = tempered.log_density.to(targets.device).masked_fill(~mask, 0.0).sum(1)
                 out["hdr_counts_calibrated"] = hdr_coverage_counts(tempered.hdr_level, mask)
         else:

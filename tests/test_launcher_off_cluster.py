@@ -137,3 +137,32 @@ def test_on_a_cluster_the_sweep_goes_on_to_submitit(tmp_path):
     (script,) = [Path(a) for a in (bin_dir / "sbatch.args").read_text().split() if a.endswith(".sh")]
     assert script.parent == sweep / ".submitit", (script, info)  # submitit's job script, as before
     assert "#SBATCH --signal=USR2@120" in script.read_text() and "srun" in script.read_text(), script.read_text()
+
+
+# ------------------------------------------------------------------ a single run (no -m)
+SINGLE = [sys.executable, "-m", "src.predict", "hydra/launcher=slurm", "ckpt_path=missing.ckpt", "image=missing.png"]
+
+
+def test_a_single_run_with_the_slurm_launcher_is_not_submitted_and_says_so(tmp_path):
+    """Hydra hands only a sweep's jobs to a launcher: without -m, hydra/launcher=slurm is not submitted. One
+    line on stderr says so and to add -m, then the run goes on here (its own error: the image is missing), on
+    a cluster or off one (where it also says that -m would stop); without a launcher there is no such line."""
+    outputs = {}
+    bin_dir = fake_slurm(tmp_path / "bin")
+    for where, path in {"off": path_without_slurm(), "on": f"{bin_dir}{os.pathsep}{path_without_slurm()}",
+                        "no launcher": path_without_slurm()}.items():  # fmt: skip
+        workdir = tmp_path / where
+        workdir.mkdir()
+        argv = SINGLE if where != "no launcher" else [a for a in SINGLE if not a.startswith("hydra/launcher")]
+        proc = run_module(argv, check=False, env={**off_cluster_env(), "PATH": path}, cwd=workdir)
+        assert proc.returncode == 1 and "image not found: missing.png" in proc.stderr, proc.stderr  # it ran here
+        outputs[where] = [line for line in proc.stderr.splitlines() if "hydra/launcher" in line]
+    assert outputs["no launcher"] == []
+    for where in ("off", "on"):
+        (line,) = outputs[where]
+        assert line.startswith("hydra/launcher=slurm submits the jobs of a sweep (-m) only: this single run is not "
+                               "submitted to SLURM and runs here"), line  # fmt: skip
+        assert "add -m" in line
+    assert "add -m to submit it" in outputs["on"][0] and "PATH" not in outputs["on"][0]
+    assert "no sbatch or srun on PATH, so -m would stop here" in outputs["off"][0]
+    assert not (bin_dir / "sbatch.args").exists()  # nothing was submitted

@@ -4,6 +4,8 @@ a run or sweep, before Hydra writes into its directory and before the task. The 
 
 from __future__ import annotations
 
+import shutil
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -13,7 +15,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from image2sphere.training.cluster import is_secondary_rank, is_slurm_requeue
 
-__all__ = ["RefuseExistingOutputDir"]
+__all__ = ["RefuseExistingOutputDir", "WarnLauncherOfSingleRun", "single_run_launcher_message"]
 
 
 class RefuseExistingOutputDir(Callback):
@@ -51,3 +53,51 @@ class RefuseExistingOutputDir(Callback):
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         self._check(config, "hydra.sweep.dir")
+
+
+def single_run_launcher_message(config: DictConfig, path: str | None = None) -> str | None:
+    """The one line for a single run (no ``-m``) given a ``hydra/launcher`` other than Hydra's ``basic``
+    (``None`` otherwise): Hydra hands only the jobs of a sweep to a launcher, so this run is not submitted (or
+    launched) but runs here, in this process. For a SLURM launcher it also says whether this machine could
+    submit (``sbatch`` and ``srun`` on ``path``, default ``PATH``): ``-m`` would be refused without them."""
+    choices = OmegaConf.select(config, "hydra.runtime.choices", default=None) or {}
+    launcher = choices.get("hydra/launcher")
+    if launcher in (None, "basic"):
+        return None
+    target = str(OmegaConf.select(config, "hydra.launcher._target_", default="") or "")
+    if "slurm" not in f"{launcher} {target}".lower():
+        return (
+            f"hydra/launcher={launcher} launches the jobs of a sweep (-m) only: this single run is not launched by "
+            f"it and runs here, in this process; add -m to launch it with hydra/launcher={launcher}"
+        )
+    try:
+        from hydra_plugins.image2sphere_launcher.slurm_launcher import missing_slurm_commands
+    except ImportError:  # the plugin package is not on the path: the same check, by hand
+        missing_slurm_commands = lambda path=None: [c for c in ("sbatch", "srun") if not shutil.which(c, path=path)]  # noqa: E731
+
+    missing = missing_slurm_commands(path)
+    where = (
+        "add -m to submit it (as a sweep of one job)"
+        if not missing
+        else f"to submit it, add -m on a SLURM cluster (this machine has no {' or '.join(missing)} on PATH, so -m "
+        "would stop here; leave hydra/launcher out to run here without this warning)"
+    )
+    return (
+        f"hydra/launcher={launcher} submits the jobs of a sweep (-m) only: this single run is not submitted to "
+        f"SLURM and runs here, in this process; {where}"
+    )
+
+
+class WarnLauncherOfSingleRun(Callback):
+    """One line on stderr when a single run (no ``-m``) is given a launcher (``hydra/launcher=slurm``,
+    ``local_parallel``): Hydra applies launchers to sweeps only, so the run goes on here, in this process,
+    and the line says so and to add ``-m`` (:func:`single_run_launcher_message`). Nothing is refused: off a
+    SLURM cluster too the single run runs here, as it would without the launcher (a sweep, ``-m``, is what
+    ``hydra/launcher=slurm`` refuses there). The other ranks of a distributed run stay quiet."""
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        if is_secondary_rank():
+            return
+        message = single_run_launcher_message(config)
+        if message:
+            print(message, file=sys.stderr, flush=True)

@@ -17,6 +17,7 @@ import resource
 import shutil
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -178,7 +179,7 @@ def test_resume_rebuilds_model_and_data_from_the_checkpoint_config(tmp_path, tra
     ckpt = trained / "checkpoints" / "last.ckpt"
     resumed = tmp_path / "resumed"
     # none of the original overrides (lmax 3, 32 px, tiny network ...) are repeated; lr is changed explicitly
-    cmd = ["python", "-m", "src.train", f"ckpt_path={ckpt}", "trainer.max_epochs=2", "model.optimizer.lr=0.5",
+    cmd = [sys.executable, "-m", "src.train", f"ckpt_path={ckpt}", "trainer.max_epochs=2", "model.optimizer.lr=0.5",
            "logger=none", f"paths.data_dir={data_dir}", f"paths.log_dir={tmp_path}", f"hydra.run.dir={resumed}",
            "callbacks.progress_bar.refresh_rate=0", "trainer.accelerator=cpu"]  # fmt: skip
     proc = subprocess.run(cmd, cwd=REPO, env=ENV, capture_output=True, text=True, timeout=600)

@@ -61,7 +61,10 @@ def run_command(
     """Run ``argv`` (``[sys.executable, "-m", module, *args]`` or ``[sys.executable, script, *args]``).
 
     In this process unless :func:`needs_own_process` says otherwise, in which case it is
-    ``subprocess.run(argv, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)``.
+    ``subprocess.run(argv, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)``, with a bare
+    ``python`` or ``python3`` as ``argv[0]`` replaced by ``sys.executable`` (the interpreter that runs the
+    in-process case too; the ``python`` first on ``PATH`` may be another one, e.g. in a virtual environment
+    that is not activated).
     ``extra_path`` is put in front of ``sys.path`` for the run (what ``PYTHONPATH`` does for a
     subprocess: e.g. the repository root, so that ``-m src.train`` is found from another directory).
     ``timeout`` applies to subprocesses only.
@@ -70,6 +73,8 @@ def run_command(
     if len(argv) < 2 or Path(argv[0]).name not in (Path(sys.executable).name, "python", "python3"):
         raise ValueError(f"expected [python, -m, module, ...] or [python, script, ...], got {argv[:3]}")
     if needs_own_process(argv):
+        if argv[0] in ("python", "python3"):
+            argv[0] = sys.executable
         return subprocess.run(argv, cwd=cwd, env=None if env is None else dict(env), capture_output=True,
                               text=True, timeout=timeout)  # fmt: skip
     if argv[1] == "-m":

@@ -5,6 +5,7 @@ from omegaconf import DictConfig
 
 import image2sphere  # noqa: F401  (sets up the torchvision guard before Lightning is imported)
 from image2sphere.training import register_resolvers
+from image2sphere.training.entry import entry_point
 from image2sphere.training.evaluate import evaluate
 
 register_resolvers()
@@ -12,7 +13,8 @@ register_resolvers()
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="eval.yaml")
 def main(cfg: DictConfig) -> None:
-    evaluate(cfg)
+    with entry_point():  # a refused value: one line, exit status 1; a failed start leaves no run directory
+        evaluate(cfg)
 
 
 if __name__ == "__main__":

@@ -6,6 +6,7 @@ from omegaconf import DictConfig
 import image2sphere  # noqa: F401  (sets up the torchvision guard before Lightning is imported)
 from image2sphere.inference import predict
 from image2sphere.training import register_resolvers
+from image2sphere.training.entry import entry_point
 from image2sphere.training.run_config import check_predict_config
 
 register_resolvers()
@@ -13,12 +14,13 @@ register_resolvers()
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="predict.yaml")
 def main(cfg: DictConfig) -> None:
-    check_predict_config(cfg)
-    predict(
-        ckpt_path=cfg.ckpt_path, image=cfg.image, class_index=cfg.class_index, output=cfg.output, top_k=cfg.top_k,
-        level=cfg.eval_grid_level, radius_deg=cfg.radius_deg, threshold=cfg.threshold, device=cfg.device,
-        recalibration=cfg.get("recalibration", "auto"),
-    )  # fmt: skip
+    with entry_point():  # a refused value: one line, exit status 1; a failed start leaves no run directory
+        check_predict_config(cfg)
+        predict(
+            ckpt_path=cfg.ckpt_path, image=cfg.image, class_index=cfg.class_index, output=cfg.output, top_k=cfg.top_k,
+            level=cfg.eval_grid_level, radius_deg=cfg.radius_deg, threshold=cfg.threshold, device=cfg.device,
+            recalibration=cfg.get("recalibration", "auto"),
+        )  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -8,13 +8,15 @@ from omegaconf import DictConfig
 
 # image2sphere (imported first by this line) makes torchvision and Lightning importable on CPU torch.
 from image2sphere.training import register_resolvers, train
+from image2sphere.training.entry import entry_point
 
 register_resolvers()
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train.yaml")
 def main(cfg: DictConfig) -> float | None:
-    metrics = train(cfg)
+    with entry_point():  # a refused value: one line, exit status 1; a failed start leaves no run directory
+        metrics = train(cfg)
     metric = cfg.get("optimized_metric")
     return metrics.get(metric) if metric else None
 

@@ -52,6 +52,10 @@ each headline metric of metrics.json as mean +- sample standard deviation over t
 number of runs; written to <out>/sweep.md and sweep.tex. An Optuna study's trials
 (hparams_search=optuna_i2s) are ordered by its objective (optimized_metric), best first.
 
+A resumed run (python -m src.train ckpt_path=<run>/checkpoints/last.ckpt ...) is read as what it trained:
+its resumed_config.yaml, the group choices and overrides of the run that wrote the checkpoint, and the
+resume's own overrides that changed a value (ckpt_path is no column).
+
 Run directories without metrics.json are listed as not finished. Existing output files are never
 replaced unless --force is given.
 """
@@ -182,6 +186,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     for u in unfinished:
         print(f"not finished: {u.path}: {u.reason}", file=sys.stderr)
+    for r in runs:
+        for note in r.notes:
+            print(f"note: {r.path}: {note}", file=sys.stderr)
     names = args.table or sorted({str(r.choices.get("table")) for r in runs if r.choices.get("table") in layouts})
     out = args.out if args.out is not None else Path(args.run_dirs[0]) / "tables"
     if not names and is_sweep(runs):

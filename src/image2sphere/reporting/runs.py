@@ -9,21 +9,49 @@ never skipped in silence.
 What a run was is looked up by key: a config group's choice (``model``, ``dataset``, ``experiment``,
 ``table``...: ``hydra.runtime.choices`` of ``.hydra/hydra.yaml``) or a dotted key of the composed
 config (``lmax``, ``seed``, ``model.net.num_components``, ``dataset.shape``).
+
+**A resumed run** (``python -m src.train ckpt_path=<run>/checkpoints/last.ckpt ...``) trains what its
+checkpoint's stored config says, not what its own command line composes, and writes the config it really
+used to ``resumed_config.yaml``. Such a run is read as what it really was:
+
+* its config is ``resumed_config.yaml`` (not ``.hydra/config.yaml``);
+* its group choices are those of the run that wrote the checkpoint (``.hydra/hydra.yaml`` of the run
+  directory the checkpoint lies in, followed back through a resume of a resume), except the groups that
+  decide where and how a run goes (:data:`OWN_GROUPS`: trainer, logger, callbacks, paths, debug, Hydra's
+  own) and any group the resume's command line names, which are the resumed run's own;
+* its overrides are the original run's, plus those of the resume's command line that changed a value
+  (``trainer.max_epochs=60`` on a run of 40 epochs), each replacing the original's of the same key;
+  ``ckpt_path`` itself is none (it says where the run started from, not what it trained).
+
+When the original run's directory is no longer beside the checkpoint (the checkpoint was copied
+elsewhere), its choices cannot be known: the other groups' choices are null (unknown, not the defaults the
+resume's command line composed), a note (:attr:`Run.notes`) says so, and its config values still come
+from ``resumed_config.yaml``.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-__all__ = ["Run", "UnfinishedRun", "find_runs", "values_equal"]
+__all__ = ["OWN_GROUPS", "RESUMED_CONFIG", "Run", "UnfinishedRun", "find_runs", "values_equal"]
 
 _MISSING = object()
+# the config a resumed run really used (written by src.train beside .hydra/)
+RESUMED_CONFIG = "resumed_config.yaml"
+# groups whose choice a resumed run takes from its own command line, as its config does: where and how it
+# runs (and every group of Hydra's own, hydra/...); any other group's choice is the original run's
+OWN_GROUPS = ("trainer", "logger", "callbacks", "paths", "debug", "hydra")
+# how far a resume of a resume of ... is followed back
+_MAX_RESUMES = 50
+_INTERPOLATION = re.compile(r"^\$\{([\w.]+)\}$")
 
 
 @dataclass
@@ -37,6 +65,10 @@ class Run:
     overrides: list[str] = field(default_factory=list)
     # the ``hydra`` section of ``.hydra/hydra.yaml`` (mode, sweeper, job number ...); empty without the file
     hydra: dict[str, Any] = field(default_factory=dict)
+    # a resumed run: the checkpoint it started from (its ckpt_path, absolute); None for a run from scratch
+    resumed_from: Path | None = None
+    # what a reader of a table should know about how this run was read (e.g. choices that are unknown)
+    notes: list[str] = field(default_factory=list)
 
     def get(self, key: str, default: Any = _MISSING) -> Any:
         """A group's choice (``model``) or a dotted config value (``model.net.lmax``); ``default``
@@ -114,23 +146,130 @@ def _read_metrics(path: Path) -> tuple[dict[str, float] | None, str]:
     return metrics, ""
 
 
-def _read_run(path: Path) -> Run | UnfinishedRun:
+@dataclass
+class _Setting:
+    """What a run directory says the run was (its effective config, choices and overrides)."""
+
+    config: dict[str, Any]
+    choices: dict[str, Any]
+    overrides: list[str]
+    hydra: dict[str, Any]
+    resumed_from: Path | None = None
+    notes: list[str] = field(default_factory=list)
+
+
+def _override_key(override: str) -> str:
+    """``+a.b=1`` -> ``a.b``, ``dataset=symsol1`` -> ``dataset`` (as run_config.override_key)."""
+    return override.lstrip("+~").split("=")[0]
+
+
+def _own_group(group: str) -> bool:
+    return any(group == g or group.startswith(g + "/") for g in OWN_GROUPS)
+
+
+def _lookup(config: dict[str, Any], key: str) -> Any:
+    """The value of a dotted ``key`` in a config (``_MISSING`` when absent), a plain ``${other.key}`` followed."""
+    node: Any = _MISSING
+    for _ in range(5):  # interpolations of interpolations, not forever
+        node = config
+        for part in key.split("."):
+            if not isinstance(node, dict) or part not in node:
+                return _MISSING
+            node = node[part]
+        match = _INTERPOLATION.match(node) if isinstance(node, str) else None
+        if not match:
+            return node
+        key = match.group(1)
+    return node
+
+
+def _checkpoint_run_dir(ckpt: Path) -> Path | None:
+    """The run directory a checkpoint lies in: the nearest folder above it with ``.hydra/config.yaml``
+    (``<run>/checkpoints/last.ckpt``, ``<run>/hpc_ckpt_1.ckpt``, ``<run>/checkpoints/last.recalibrated.ckpt``)."""
+    for folder in list(ckpt.parents)[:3]:
+        if (folder / ".hydra" / "config.yaml").is_file():
+            return folder
+    return None
+
+
+def _read_setting(path: Path, depth: int = 0) -> _Setting:
+    """``OSError`` or ``yaml.YAMLError`` when a file of ``.hydra/`` (or ``resumed_config.yaml``) is unreadable."""
     hydra_dir = path / ".hydra"
-    try:
-        config = _read_yaml(hydra_dir / "config.yaml") or {}
-        hydra_cfg = (_read_yaml(hydra_dir / "hydra.yaml") or {}) if (hydra_dir / "hydra.yaml").is_file() else {}
-        has_overrides = (hydra_dir / "overrides.yaml").is_file()
-        overrides = (_read_yaml(hydra_dir / "overrides.yaml") or []) if has_overrides else []
-    except (OSError, yaml.YAMLError) as e:
-        return UnfinishedRun(path, f".hydra/ is not readable ({e})")
+    config = _read_yaml(hydra_dir / "config.yaml") or {}
+    hydra_cfg = (_read_yaml(hydra_dir / "hydra.yaml") or {}) if (hydra_dir / "hydra.yaml").is_file() else {}
+    has_overrides = (hydra_dir / "overrides.yaml").is_file()
+    overrides = [str(o) for o in (_read_yaml(hydra_dir / "overrides.yaml") or [])] if has_overrides else []
     hydra = dict(hydra_cfg.get("hydra") or {})
     choices = dict((hydra.get("runtime") or {}).get("choices") or {})
+    if not (path / RESUMED_CONFIG).is_file():
+        return _Setting(config, choices, overrides, hydra)
+    effective = _read_yaml(path / RESUMED_CONFIG) or {}
+    ckpt_text = effective.get("ckpt_path") or config.get("ckpt_path")
+    if not ckpt_text:
+        return _Setting(effective, choices, overrides, hydra)
+    ckpt = Path(str(ckpt_text)).expanduser()
+    if not ckpt.is_absolute():  # relative to where the resume was started
+        ckpt = Path(str((hydra.get("runtime") or {}).get("cwd") or path)) / ckpt
+    ckpt = Path(os.path.normpath(ckpt))
+    own = [o for o in overrides if _override_key(o) != "ckpt_path"]
+    named = {_override_key(o) for o in own}  # groups (and keys) the resume's command line names
+    origin_dir = _checkpoint_run_dir(ckpt)
+    origin: _Setting | None = None
+    if origin_dir is not None and origin_dir.resolve() != path.resolve() and depth < _MAX_RESUMES:
+        try:
+            origin = _read_setting(origin_dir, depth + 1)
+        except (OSError, yaml.YAMLError):
+            origin = None
+    if origin is None:
+        unknown = sorted(g for g, v in choices.items() if not (_own_group(g) or g in named) and v is not None)
+        kept = {g: (None if g in unknown else v) for g, v in choices.items()}  # None: unknown, not the default
+        note = (
+            f"resumed from {ckpt}, but no run directory with .hydra/ holds that checkpoint: the original run's "
+            f"choices ({', '.join(unknown)}) and overrides are unknown; its config values come from {RESUMED_CONFIG}"
+        )
+        return _Setting(effective, kept, own, hydra, ckpt, [note])
+    merged_choices = dict(origin.choices)
+    merged_choices.update({g: v for g, v in choices.items() if _own_group(g) or g in named})
+    changed = []
+    for override in own:
+        key = _override_key(override)
+        if key in choices or key in origin.choices:  # a group: did its choice change?
+            if not values_equal(choices.get(key), origin.choices.get(key)):
+                changed.append(override)
+            continue
+        now, before = _lookup(effective, key), _lookup(origin.config, key)
+        if (now is _MISSING) != (before is _MISSING) or not (now is _MISSING or values_equal(now, before)):
+            changed.append(override)
+    keys = {_override_key(o) for o in changed}
+    merged = [o for o in origin.overrides if _override_key(o) not in keys] + changed
+    return _Setting(effective, merged_choices, merged, hydra, ckpt, list(origin.notes))
+
+
+def _only_a_start(path: Path) -> bool:
+    """Whether a run directory holds nothing but what Hydra writes before the task starts (``.hydra/``, a log)."""
+    try:
+        return all(e.name == ".hydra" or (e.is_file() and e.suffix == ".log") for e in path.iterdir())
+    except OSError:
+        return False
+
+
+def _read_run(path: Path) -> Run | UnfinishedRun:
+    try:
+        setting = _read_setting(path)
+    except (OSError, yaml.YAMLError) as e:
+        return UnfinishedRun(path, f".hydra/ or {RESUMED_CONFIG} is not readable ({e})")
     metrics, reason = _read_metrics(path / "metrics.json")
     if metrics is None:
+        if _only_a_start(path):
+            reason += (
+                "; it holds only .hydra/ and the log: a run still starting, or a start refused before training "
+                "(left by a version before such starts removed their directory; safe to delete once no run uses it)"
+            )
         return UnfinishedRun(path, reason)
     return Run(
-        path=path, metrics=metrics, choices=choices, config=config, overrides=[str(o) for o in overrides], hydra=hydra
-    )
+        path=path, metrics=metrics, choices=setting.choices, config=setting.config, overrides=setting.overrides,
+        hydra=setting.hydra, resumed_from=setting.resumed_from, notes=setting.notes,
+    )  # fmt: skip
 
 
 def find_runs(paths: list[str | Path]) -> tuple[list[Run], list[UnfinishedRun]]:

@@ -6,15 +6,14 @@
 * a full disk while writing leaves the previous ``last.ckpt`` intact;
 * a resumed run takes its model, data and schedule from the checkpoint, the command line's explicit
   keys win; broken checkpoint files and invalid config values stop the run before any work;
-* under SLURM, Lightning's requeue mechanism writes its checkpoint into the job's own directory and
-  the requeued job continues from it.
+* under SLURM, the requeue signal writes ``last.ckpt`` into the job's own directory and requeues the job,
+  which continues from it.
 """
 
 from __future__ import annotations
 
 import random
 import resource
-import shutil
 import signal
 import subprocess
 import sys
@@ -28,6 +27,7 @@ from torch import nn
 from torch.utils.data import DataLoader, TensorDataset
 
 from conftest import ENV, REPO, TINY, run_train, train_command
+from image2sphere.testing.commands import process_group, run_group
 from image2sphere.training.checkpoint import AtomicCheckpointIO, EpochCheckpoint
 
 STEPS_PER_EPOCH_BS2 = 8  # 2 shapes x (10 - 2 validation) images in batches of 2
@@ -62,13 +62,9 @@ def _weights(run: Path) -> dict:
 def test_sigkill_right_after_the_first_epoch_leaves_a_checkpoint_that_resumes_at_epoch_1(tmp_path, data_dir):
     run = tmp_path / "killed"
     cmd = train_command(["logger=none", "trainer.max_epochs=100", f"hydra.run.dir={run}"], data_dir, tmp_path / "l")
-    proc = subprocess.Popen(cmd, cwd=REPO, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     ckpt = run / "checkpoints" / "last.ckpt"
-    try:
-        _wait_for(ckpt, proc)
-    finally:
-        proc.kill()
-        proc.wait()
+    with process_group(cmd, cwd=REPO, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) as proc:
+        _wait_for(ckpt, proc)  # leaving the block kills the whole run (SIGKILL)
     saved = torch.load(ckpt, map_location="cpu", weights_only=True)  # complete, plain types only
     steps = 3  # 2 shapes x 8 training images in batches of 6
     assert saved["epoch"] == 0 and saved["global_step"] == steps  # written when the first epoch ended
@@ -88,12 +84,12 @@ def test_interrupted_run_writes_last_ckpt_says_how_to_resume_and_resumes_exactly
     common = ["logger=none", "dataset.batch_size=2", "trainer.max_epochs=2"]
     full, stopped, resumed = tmp_path / "full", tmp_path / "stopped", tmp_path / "resumed"
     cmd = train_command([*common, f"hydra.run.dir={stopped}"], data_dir, tmp_path / "logs")
-    proc = subprocess.Popen(cmd, cwd=REPO, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     ckpt = stopped / "checkpoints" / "last.ckpt"
-    _wait_for(ckpt, proc)  # the end of epoch 0
-    time.sleep(0.5)  # into epoch 1
-    proc.send_signal(sig)
-    out, _ = proc.communicate(timeout=300)
+    with process_group(cmd, cwd=REPO, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as proc:
+        _wait_for(ckpt, proc)  # the end of epoch 0
+        time.sleep(0.5)  # into epoch 1
+        proc.send_signal(sig)
+        out, _ = proc.communicate(timeout=300)
     assert proc.returncode == 128 + sig, out[-3000:]
     assert f"Training stopped by {signal.Signals(sig).name}" in out
     assert f"Resume with: python -m src.train ckpt_path={ckpt}" in out
@@ -253,41 +249,39 @@ def test_fast_dev_run_writes_no_checkpoint_and_no_logger_files(tmp_path, data_di
     assert not list(run.rglob("*.ckpt")) and not (run / "wandb").exists()
 
 
-# ------------------------------------------------------------------ SLURM requeue (Lightning's own mechanism)
+# ------------------------------------------------------------------ SLURM requeue
 SLURM = {"SLURM_JOB_ID": "4242", "SLURM_NTASKS": "1", "SLURM_JOB_NAME": "i2s", "SLURM_PROCID": "0",
          "SLURM_LOCALID": "0", "SLURM_NODEID": "0", "SLURM_NODELIST": "localhost"}  # fmt: skip
 
 
 @pytest.mark.slow
-def test_slurm_requeue_signal_writes_hpc_checkpoint_and_requeued_job_resumes_from_it(tmp_path, data_dir):
+def test_slurm_requeue_signal_writes_last_ckpt_requeues_and_the_requeued_job_resumes_from_it(tmp_path, data_dir):
+    """The requeue signal takes the path of SIGTERM (the ranks decide, last.ckpt is written) and then asks
+    SLURM to requeue the job; the requeued job (same id, a restart counted) continues in its directory."""
     env = {**ENV, **SLURM, "PATH": f"{tmp_path}:{ENV['PATH']}"}
     (tmp_path / "scontrol").write_text('#!/bin/sh\necho "$@" >> "$(dirname "$0")/requeued"\n')
     (tmp_path / "scontrol").chmod(0o755)
     logs = tmp_path / "logs"
     cmd = train_command(["logger=none", "trainer.max_epochs=100"], data_dir, logs)
-    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     run = logs / "train" / "runs" / "slurm_4242"  # named after the job, so a requeued job finds it
-    try:
-        _wait_for(run / "checkpoints" / "last.ckpt", proc)
+    ckpt = run / "checkpoints" / "last.ckpt"
+    with process_group(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as proc:
+        _wait_for(ckpt, proc)
+        time.sleep(0.3)  # into the next epoch
         proc.send_signal(signal.SIGUSR1)
-        _wait_for(run / "hpc_ckpt_1.ckpt", proc, timeout=120)
-        deadline = time.monotonic() + 60
-        while not (tmp_path / "requeued").exists() and time.monotonic() < deadline:
-            time.sleep(0.1)
-    finally:
-        proc.kill()
-        proc.wait()
+        out, _ = proc.communicate(timeout=300)
+    assert proc.returncode == 128 + signal.SIGUSR1, out[-3000:]
+    assert "SLURM requeues the job; it continues from that checkpoint" in out, out[-3000:]
     assert (tmp_path / "requeued").read_text().split() == ["requeue", "4242"]
-    hpc = torch.load(run / "hpc_ckpt_1.ckpt", map_location="cpu", weights_only=True)
-    # the requeued job: same job id, SLURM counts the restart; it continues in the same directory
-    shutil.rmtree(run / "checkpoints")  # only Lightning's requeue checkpoint can be resumed from
+    assert not list(run.glob("hpc_ckpt_*.ckpt"))  # one checkpoint, one mechanism
+    saved = torch.load(ckpt, map_location="cpu", weights_only=True)
     env["SLURM_RESTART_COUNT"] = "1"
-    max_epochs = hpc["epoch"] + 2
+    max_epochs = saved["epoch"] + 2
     cmd = train_command(["logger=none", f"trainer.max_epochs={max_epochs}"], data_dir, logs)
-    proc2 = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    proc2 = run_group(cmd, cwd=REPO, env=env, timeout=600)
     out = proc2.stdout + proc2.stderr
     assert proc2.returncode == 0, out[-4000:]
-    assert f"Restored all states from the checkpoint at {run / 'hpc_ckpt_1.ckpt'}" in out
+    assert f"Requeued SLURM job 4242: continuing from {ckpt}" in out
     assert (run / "metrics.json").is_file() and _weights(run)["epoch"] == max_epochs - 1
 
 

@@ -72,6 +72,7 @@ from PIL import Image
 import image2sphere  # noqa: F401  (before torchvision, which check_pretrained_download imports)
 from conftest import ENV, SMOKE, TINY
 from image2sphere.testing import needs_own_process, run_command
+from image2sphere.testing.commands import run_group
 from test_table_sweeps import composed_run, table_jobs
 from test_tables import make_run
 
@@ -423,7 +424,7 @@ def run_in(
     command that starts processes itself, e.g. DDP, as a process of its own), a script as a subprocess."""
     env = ws.env if env is None else env
     if argv[1] != "-m":
-        return subprocess.run(argv, cwd=ws.root, env=env, capture_output=True, text=True, timeout=timeout)
+        return run_group(argv, cwd=ws.root, env=env, timeout=timeout)
     return run_command(argv, cwd=ws.root, env=env, timeout=timeout, extra_path=[REPO])
 
 

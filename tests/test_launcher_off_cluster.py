@@ -24,6 +24,7 @@ from hydra_plugins.image2sphere_launcher.slurm_launcher import (
     missing_slurm_commands,
     off_cluster_message,
 )
+from image2sphere.testing.commands import run_group
 
 COMMAND = [sys.executable, "-m", "src.train", "-m", "hydra/launcher=slurm", "trainer.fast_dev_run=true"]
 # the other entry points that accept a sweep (-m): the launcher stops them before their task (and its
@@ -107,7 +108,7 @@ def test_slurm_sweep_off_cluster_prints_one_line_and_writes_nothing(tmp_path):
     """The command as a user types it, as a process of its own: its exit status, stderr and files."""
     workdir = tmp_path / "work"
     workdir.mkdir()
-    proc = subprocess.run(COMMAND, cwd=workdir, env=off_cluster_env(), capture_output=True, text=True, timeout=300)
+    proc = run_group(COMMAND, cwd=workdir, env=off_cluster_env(), timeout=300)
     assert_refused(proc, workdir)
 
 

@@ -16,6 +16,7 @@ import pytest
 import torch
 
 from conftest import ENV, REPO, SMOKE, read_metrics, run_module, run_train, train_command
+from image2sphere.testing.commands import process_group
 
 
 @pytest.fixture(scope="module")
@@ -113,17 +114,13 @@ def test_resume_from_last_checkpoint_matches_uninterrupted_run(tmp_path, data_di
 def test_run_killed_mid_epoch_resumes_from_its_last_epoch(tmp_path, data_dir):
     logs, killed = tmp_path / "logs", tmp_path / "killed"
     cmd = train_command(["logger=none", "trainer.max_epochs=100", f"hydra.run.dir={killed}"], data_dir, logs)
-    proc = subprocess.Popen(cmd, cwd=REPO, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     ckpt = killed / "checkpoints" / "last.ckpt"
-    try:
+    with process_group(cmd, cwd=REPO, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) as proc:
         deadline = time.monotonic() + 600
         while not ckpt.exists() and time.monotonic() < deadline and proc.poll() is None:
             time.sleep(0.2)
         assert ckpt.exists(), "no checkpoint was written"
-        time.sleep(1.0)  # into the next epoch
-    finally:
-        proc.kill()  # SIGKILL: no chance to clean up
-        proc.wait()
+        time.sleep(1.0)  # into the next epoch; leaving the block kills the run (SIGKILL: no chance to clean up)
     saved = torch.load(ckpt, map_location="cpu", weights_only=True)  # complete, loadable, plain types only
     steps_per_epoch = 3  # 2 shapes x (10 - 2 validation) images in batches of 6
     assert saved["global_step"] % steps_per_epoch == 0 and saved["global_step"] >= steps_per_epoch

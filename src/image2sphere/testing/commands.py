@@ -21,13 +21,14 @@ import io
 import logging
 import os
 import runpy
+import signal
 import subprocess
 import sys
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
-__all__ = ["needs_own_process", "run_command"]
+__all__ = ["needs_own_process", "process_group", "run_command", "run_group"]
 
 # overrides after which a run starts other processes from its own command line
 _OWN_PROCESS = ("trainer=ddp", "hydra/launcher=local_parallel")
@@ -61,7 +62,8 @@ def run_command(
     """Run ``argv`` (``[sys.executable, "-m", module, *args]`` or ``[sys.executable, script, *args]``).
 
     In this process unless :func:`needs_own_process` says otherwise, in which case it is
-    ``subprocess.run(argv, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)``, with a bare
+    :func:`run_group` (``subprocess.run(argv, cwd=cwd, env=env, capture_output=True, text=True,
+    timeout=timeout)`` in a process group that is ended whatever happens), with a bare
     ``python`` or ``python3`` as ``argv[0]`` replaced by ``sys.executable`` (the interpreter that runs the
     in-process case too; the ``python`` first on ``PATH`` may be another one, e.g. in a virtual environment
     that is not activated).
@@ -75,8 +77,7 @@ def run_command(
     if needs_own_process(argv):
         if argv[0] in ("python", "python3"):
             argv[0] = sys.executable
-        return subprocess.run(argv, cwd=cwd, env=None if env is None else dict(env), capture_output=True,
-                              text=True, timeout=timeout)  # fmt: skip
+        return run_group(argv, cwd=cwd, env=None if env is None else dict(env), timeout=timeout)
     if argv[1] == "-m":
         if len(argv) < 3:
             raise ValueError("python -m needs a module name")
@@ -86,6 +87,32 @@ def run_command(
     out, err = io.StringIO(), io.StringIO()
     code = _run_here(target, rest, is_module, cwd, env, extra_path, out, err)
     return subprocess.CompletedProcess(argv, code, out.getvalue(), err.getvalue())
+
+
+@contextlib.contextmanager
+def process_group(argv: Sequence[str], **popen_kwargs) -> Iterator[subprocess.Popen]:
+    """``subprocess.Popen(argv, **popen_kwargs)`` as the leader of a new process group (a session of its
+    own); when the block ends, however it ends (a failed assertion, a timeout, Ctrl-C), every process still
+    in that group (the DDP ranks and loader workers the command started) is killed and the leader reaped:
+    a test leaves no orphans behind."""
+    proc = subprocess.Popen(list(argv), start_new_session=True, **popen_kwargs)
+    try:
+        yield proc
+    finally:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+
+
+def run_group(argv: Sequence[str], cwd=None, env: Mapping[str, str] | None = None,
+              timeout: float | None = None) -> subprocess.CompletedProcess:  # fmt: skip
+    """What ``subprocess.run(argv, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)``
+    returns, run in a process group that is killed whole when it times out (``subprocess.TimeoutExpired``
+    is raised, as ``subprocess.run`` does) or when the command's own first process exits and leaves others."""
+    with process_group(argv, cwd=cwd, env=None if env is None else dict(env), stdout=subprocess.PIPE,
+                       stderr=subprocess.PIPE, text=True) as proc:  # fmt: skip
+        out, err = proc.communicate(timeout=timeout)
+    return subprocess.CompletedProcess(list(argv), proc.returncode, out, err)
 
 
 def _run_here(target, rest, is_module, cwd, env, extra_path, out, err) -> int:

@@ -1,0 +1,234 @@
+"""Stopping on a signal (image2sphere.training.stop): handlers only record, the ranks decide together.
+
+Quick tier: the handlers, the decision on one process and on two (gloo), Lightning's connector switched
+off, and in-process fits of a tiny model stopped from inside the optimizer's step, in an epoch's last
+batch (the stop waits for the epoch's end) and in the test. The two-process DDP runs stopped at seeded
+moments are in tests/test_scaling.py (slow) and image2sphere.testing.preemption (the whole schedule).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import sys
+import time
+
+import lightning.pytorch as pl
+import pytest
+import torch
+from torch import nn
+from torch.utils.data import DataLoader, TensorDataset
+
+from image2sphere.testing.preemption import MOMENT_PHASES, SignalAt, group_alive, schedule
+from image2sphere.training import stop
+from image2sphere.training.checkpoint import AtomicCheckpointIO, EpochCheckpoint, batches_done_in_epoch
+
+
+def _deliver(signum: int) -> None:
+    """Send ``signum`` to this process and let Python run its handler."""
+    os.kill(os.getpid(), signum)
+    for _ in range(100):  # the handler runs between bytecodes, on the main thread
+        time.sleep(0.001)
+
+
+# ------------------------------------------------------------------ handlers
+def test_a_signal_is_only_recorded_and_the_previous_handlers_come_back():
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    with stop.handle_signals():
+        assert stop.requested() is None
+        _deliver(signal.SIGTERM)  # the default handler would end the process here
+        assert stop.requested() == signal.SIGTERM
+        _deliver(signal.SIGINT)  # a later, different signal does not replace the first
+        assert stop.requested() == signal.SIGTERM
+        assert stop.decide() == signal.SIGTERM  # no process group: this process's own request
+    assert {s: signal.getsignal(s) for s in before} == before
+
+
+def test_the_second_ctrl_c_stops_at_once():
+    with stop.handle_signals():
+        _deliver(signal.SIGINT)
+        assert stop.requested() == signal.SIGINT
+        with pytest.raises(KeyboardInterrupt):
+            _deliver(signal.SIGINT)
+
+
+def test_nothing_requested_decides_nothing_and_a_new_block_forgets_the_last_request():
+    with stop.handle_signals():
+        _deliver(signal.SIGTERM)
+    with stop.handle_signals():
+        assert stop.requested() is None and stop.decide() is None
+
+
+def test_the_requeue_signal_is_recorded_and_its_handler_restored():
+    before = signal.getsignal(signal.SIGUSR1)
+    with stop.handle_signals(requeue_signal=signal.SIGUSR1):
+        _deliver(signal.SIGUSR1)
+        assert stop.decide() == signal.SIGUSR1
+    assert signal.getsignal(signal.SIGUSR1) is before
+    with stop.handle_signals():  # requeueing off (not under SLURM): SIGUSR1 is not the run's
+        assert signal.getsignal(signal.SIGUSR1) is before
+
+
+def test_data_loading_workers_ignore_the_stop_signals():
+    from image2sphere.data.workers import init_worker
+
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        init_worker(0)  # outside a worker it only sets the handlers
+        assert signal.getsignal(signal.SIGINT) == signal.getsignal(signal.SIGTERM) == signal.SIG_IGN
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+# ------------------------------------------------------------------ the decision on two processes (gloo)
+RANK_SCRIPT = """
+import json, os, signal, sys, time
+import torch
+from image2sphere.training import stop
+rank, port, rounds = int(sys.argv[1]), sys.argv[2], json.loads(sys.argv[3])
+torch.distributed.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=2)
+decided = []
+for requests in rounds:  # one round per entry: each rank's request (or None)
+    with stop.handle_signals(requeue_signal=signal.SIGUSR1):
+        if requests[rank] is not None:
+            os.kill(os.getpid(), requests[rank])
+            time.sleep(0.05)
+        decided.append(stop.decide())
+torch.distributed.destroy_process_group()
+print(json.dumps(decided))
+"""
+
+
+@pytest.mark.slow
+def test_every_rank_decides_the_strongest_request_of_any_rank(tmp_path):
+    """Rank 0 alone asked, rank 1 alone asked, nobody, and two different signals (the requeue signal wins
+    over SIGTERM, SIGTERM over Ctrl-C): both ranks come to the same answer each time."""
+    import json
+    import subprocess
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    T, I, U = int(signal.SIGTERM), int(signal.SIGINT), int(signal.SIGUSR1)
+    rounds = json.dumps([(T, None), (None, T), (None, None), (T, U), (I, T)])
+    procs = [subprocess.Popen([sys.executable, "-c", RANK_SCRIPT, str(r), str(port), rounds], stdout=subprocess.PIPE,
+                              text=True, start_new_session=True) for r in (0, 1)]  # fmt: skip
+    try:
+        outs = [p.communicate(timeout=180)[0] for p in procs]
+    finally:
+        for p in procs:  # nothing left behind, whatever happened
+            if group_alive(p.pid):
+                os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    assert [p.returncode for p in procs] == [0, 0], outs
+    assert json.loads(outs[0]) == json.loads(outs[1]) == [T, T, None, U, T]
+
+
+# ------------------------------------------------------------------ Lightning's own handling switched off
+def test_lightning_installs_no_handler_and_never_stops_one_rank_by_itself():
+    trainer = pl.Trainer(accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False)
+    stop.use_flag_only_signals(trainer)
+    stop.use_flag_only_signals(trainer)  # idempotent
+    assert sum(isinstance(c, stop.StopOnRequest) for c in trainer.callbacks) == 1
+    before = signal.getsignal(signal.SIGTERM)
+    trainer._signal_connector.register_signal_handlers()
+    assert signal.getsignal(signal.SIGTERM) is before
+    with stop.handle_signals():
+        _deliver(signal.SIGTERM)
+        assert not trainer.received_sigterm  # Lightning's loops check this flag on each rank alone
+    trainer._signal_connector.teardown()
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
+# ------------------------------------------------------------------ in-process fits stopped by a signal
+class _Tiny(pl.LightningModule):
+    def __init__(self):
+        super().__init__()
+        self.layer = nn.Linear(4, 1)
+        self.validated = 0
+
+    def training_step(self, batch, batch_idx):
+        return self.layer(batch[0]).pow(2).mean()
+
+    def validation_step(self, batch, batch_idx):
+        self.validated += 1
+
+    def test_step(self, batch, batch_idx):
+        pass
+
+    def configure_optimizers(self):
+        return torch.optim.SGD(self.parameters(), lr=0.1)
+
+
+def _fit(tmp_path, moment: SignalAt, max_epochs: int = 2):
+    data = DataLoader(TensorDataset(torch.randn(16, 4)), batch_size=4)  # 4 batches an epoch
+    checkpoint = EpochCheckpoint(dirpath=tmp_path / "checkpoints", save_last=True, save_top_k=0)
+    trainer = pl.Trainer(max_epochs=max_epochs, callbacks=[checkpoint, moment], plugins=[AtomicCheckpointIO()],
+                         accelerator="cpu", logger=False, enable_progress_bar=False, enable_model_summary=False,
+                         num_sanity_val_steps=0, default_root_dir=tmp_path)  # fmt: skip
+    stop.use_flag_only_signals(trainer)
+    module = _Tiny()
+    with stop.handle_signals():
+        with pytest.raises(stop.TrainingInterrupted) as stopped:
+            trainer.fit(module, data, data)
+    return stopped.value, module
+
+
+def test_sigterm_inside_the_optimizer_step_stops_after_that_batch_with_its_checkpoint(tmp_path):
+    e, _ = _fit(tmp_path, SignalAt("optimizer_step", occurrence=6))  # epoch 1, its second batch
+    assert e.signum == signal.SIGTERM and e.epoch == 1 and e.step == 6
+    saved = torch.load(e.checkpoint, weights_only=True)
+    assert saved["global_step"] == 6 and batches_done_in_epoch(saved) == 2
+
+
+def test_sigterm_in_an_epochs_last_batch_stops_at_its_end_after_validation(tmp_path):
+    e, module = _fit(tmp_path, SignalAt("forward_backward", occurrence=4))  # epoch 0's last batch
+    assert e.epoch == 0 and e.step == 4
+    assert module.validated == 4  # the epoch's validation ran before the stop
+    saved = torch.load(e.checkpoint, weights_only=True)
+    assert batches_done_in_epoch(saved) == 0  # a whole epoch: the resumed run starts epoch 1
+
+
+def test_sigterm_before_training_starts_stops_with_no_checkpoint(tmp_path):
+    e, _ = _fit(tmp_path, SignalAt("fit_start"))
+    assert e.checkpoint is None and e.step == 0
+    assert not (tmp_path / "checkpoints").exists() or not any((tmp_path / "checkpoints").iterdir())
+
+
+def test_sigterm_in_the_test_stops_it_after_that_batch(tmp_path):
+    data = DataLoader(TensorDataset(torch.randn(16, 4)), batch_size=4)
+    trainer = pl.Trainer(accelerator="cpu", logger=False, enable_progress_bar=False, enable_model_summary=False,
+                         callbacks=[SignalAt("test", occurrence=2)])  # fmt: skip
+    stop.use_flag_only_signals(trainer)
+    with stop.handle_signals(), pytest.raises(stop.StopRequested, match="SIGTERM in the test"):
+        trainer.test(_Tiny(), data)
+    assert trainer.test_loop.batch_progress.current.completed == 1  # the second batch did not complete
+
+
+# ------------------------------------------------------------------ the stress check's schedule and tools
+def test_the_schedule_covers_every_phase_for_both_targets_and_is_seeded():
+    moments = schedule(22, seed=0)
+    assert len(moments) == 22 and len({m.name for m in moments}) == 22
+    covered = {(m.phase, m.target) for m in moments if not m.timed}
+    assert covered == {(p, t) for p in MOMENT_PHASES for t in ("rank0", "group")}
+    assert sum(m.timed for m in moments) == 4
+    for m in moments:
+        if not m.timed:
+            count, ranks = MOMENT_PHASES[m.phase]
+            assert 1 <= m.occurrence <= count and m.rank in ranks
+    assert [m.name for m in schedule(22, seed=0)] == [m.name for m in moments]
+    assert [m.name for m in schedule(22, seed=1)] != [m.name for m in moments]
+
+
+def test_group_alive_sees_a_running_group_and_not_an_ended_one():
+    import subprocess
+
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"], start_new_session=True)
+    try:
+        assert group_alive(proc.pid) == [proc.pid]
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    assert group_alive(proc.pid) == []

@@ -62,7 +62,7 @@ def test_nothing_requested_decides_nothing_and_a_new_block_forgets_the_last_requ
 
 def test_the_requeue_signal_is_recorded_and_its_handler_restored():
     before = signal.getsignal(signal.SIGUSR1)
-    with stop.handle_signals(requeue_signal=signal.SIGUSR1):
+    with stop.handle_signals(requeue_signals=[signal.SIGUSR1]):
         _deliver(signal.SIGUSR1)
         assert stop.decide() == signal.SIGUSR1
     assert signal.getsignal(signal.SIGUSR1) is before
@@ -91,7 +91,7 @@ rank, port, rounds = int(sys.argv[1]), sys.argv[2], json.loads(sys.argv[3])
 torch.distributed.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=2)
 decided = []
 for requests in rounds:  # one round per entry: each rank's request (or None)
-    with stop.handle_signals(requeue_signal=signal.SIGUSR1):
+    with stop.handle_signals(requeue_signals=[signal.SIGUSR1]):
         if requests[rank] is not None:
             os.kill(os.getpid(), requests[rank])
             time.sleep(0.05)
@@ -162,7 +162,7 @@ class _Tiny(pl.LightningModule):
         return torch.optim.SGD(self.parameters(), lr=0.1)
 
 
-def _fit(tmp_path, moment: SignalAt, max_epochs: int = 2):
+def _fit(tmp_path, moment: SignalAt, max_epochs: int = 2, requeue_signals=()):
     data = DataLoader(TensorDataset(torch.randn(16, 4)), batch_size=4)  # 4 batches an epoch
     checkpoint = EpochCheckpoint(dirpath=tmp_path / "checkpoints", save_last=True, save_top_k=0)
     trainer = pl.Trainer(max_epochs=max_epochs, callbacks=[checkpoint, moment], plugins=[AtomicCheckpointIO()],
@@ -170,7 +170,7 @@ def _fit(tmp_path, moment: SignalAt, max_epochs: int = 2):
                          num_sanity_val_steps=0, default_root_dir=tmp_path)  # fmt: skip
     stop.use_flag_only_signals(trainer)
     module = _Tiny()
-    with stop.handle_signals():
+    with stop.handle_signals(requeue_signals):
         with pytest.raises(stop.TrainingInterrupted) as stopped:
             trainer.fit(module, data, data)
     return stopped.value, module
@@ -189,6 +189,28 @@ def test_sigterm_in_an_epochs_last_batch_stops_at_its_end_after_validation(tmp_p
     assert module.validated == 4  # the epoch's validation ran before the stop
     saved = torch.load(e.checkpoint, weights_only=True)
     assert batches_done_in_epoch(saved) == 0  # a whole epoch: the resumed run starts epoch 1
+
+
+def test_submitits_requeue_handler_runs_after_last_ckpt_is_written_not_inside_the_step(tmp_path):
+    """hydra/launcher=slurm: submitit handles SIGUSR2 (it requeues the job and ends the process). The run
+    records the signal like any other, writes last.ckpt at the end of the batch, then calls submitit's
+    handler in ordinary code."""
+    calls = []
+    last = tmp_path / "checkpoints" / "last.ckpt"
+
+    def submitit_like(signum, frame):
+        calls.append((signum, last.is_file(), torch.load(last, weights_only=True)["global_step"]))
+
+    previous = signal.signal(signal.SIGUSR2, submitit_like)
+    try:
+        assert signal.SIGUSR2 in stop.requeue_signals()
+        moment = SignalAt("optimizer_step", occurrence=6, signum=signal.SIGUSR2)
+        e, _ = _fit(tmp_path, moment, requeue_signals=stop.requeue_signals())
+        assert signal.getsignal(signal.SIGUSR2) is submitit_like  # given back after the run
+    finally:
+        signal.signal(signal.SIGUSR2, previous)
+    assert e.signum == signal.SIGUSR2 and e.requeued and e.step == 6
+    assert calls == [(signal.SIGUSR2, True, 6)]  # once, after the checkpoint of that very batch
 
 
 def test_sigterm_before_training_starts_stops_with_no_checkpoint(tmp_path):

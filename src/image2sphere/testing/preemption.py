@@ -305,8 +305,9 @@ def same_metrics(a: dict, b: dict, rel: float = 1e-5) -> list[str]:
 
 
 def check_moment(moment: Moment, root: Path, data_dir: Path, reference: Path, bound: float,
-                 env: dict | None = None) -> dict:  # fmt: skip
-    """Run one moment (stop, checks, resume) under ``root``; a dict of what was measured and ``problems``."""
+                 env: dict | None = None, give_up: float | None = None) -> dict:  # fmt: skip
+    """Run one moment (stop, checks, resume) under ``root``; a dict of what was measured and ``problems``.
+    A run still alive ``give_up`` seconds after its start (default: ``bound`` + 240) counts as hung."""
     import torch
 
     from image2sphere.training.checkpoint import load_checkpoint
@@ -314,14 +315,15 @@ def check_moment(moment: Moment, root: Path, data_dir: Path, reference: Path, bo
     stopped, resumed = root / "stopped", root / "resumed"
     stamp = root / "signal_sent"
     ckpt = stopped / "checkpoints" / "last.ckpt"
+    give_up = bound + 240 if give_up is None else give_up
     result = run_group(train_argv(signal_overrides(moment, stamp), data_dir, stopped), root / "stopped.log",
-                       timeout=bound + 240, env=env, moment=moment, watch=ckpt)  # fmt: skip
+                       timeout=give_up, env=env, moment=moment, watch=ckpt)  # fmt: skip
     sent = result["sent"] or (float(stamp.read_text()) if stamp.is_file() else None)
     problems = []
     out = (root / "stopped.log").read_text(errors="replace")
     seconds = None if sent is None else result["ended"] - sent
     if result["hung"]:
-        problems.append(f"the run did not exit: killed after {bound + 240:.0f} s (stacks in stopped.stacks.txt)")
+        problems.append(f"the run did not exit: killed {give_up:.0f} s after its start (stacks: stopped.stacks.txt)")
     elif sent is None:
         problems.append("the moment was never reached: no signal was sent")
     elif seconds > bound:
@@ -371,6 +373,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="seed of the schedule")
     parser.add_argument("--only", nargs="*", default=None, help="names of the schedule's moments to run")
     parser.add_argument("--bound", type=float, default=60.0, help="seconds a run may take to exit after the signal")
+    parser.add_argument("--give-up", type=float, default=None, help="seconds from its start after which a run "
+                        "counts as hung (default: bound + 240)")  # fmt: skip
     parser.add_argument("--out", type=Path, default=None, help="folder for the runs (default: a new temporary one)")
     parser.add_argument("--keep", action="store_true", help="keep the runs' folders of moments that passed")
     args = parser.parse_args(argv)
@@ -399,7 +403,7 @@ def main(argv: list[str] | None = None) -> int:
         root = out / f"{i:02d}"
         root.mkdir()
         t0 = time.monotonic()
-        record = check_moment(moment, root, data_dir, reference, args.bound, env=env)
+        record = check_moment(moment, root, data_dir, reference, args.bound, env=env, give_up=args.give_up)
         record["seconds"] = round(time.monotonic() - t0, 1)
         records.append(record)
         exit_s = "-" if record["exit_seconds"] is None else f"{record['exit_seconds']:.1f}"

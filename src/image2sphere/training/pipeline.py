@@ -38,6 +38,7 @@ from image2sphere.training.stop import (
     decide_or_raise,
     handle_signals,
     requested,
+    requeue_signals,
     use_flag_only_signals,
 )
 
@@ -67,10 +68,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     Ctrl-C, SIGTERM and SLURM's requeue signal only record a request while it runs; the ranks decide
     together where to stop (:mod:`image2sphere.training.stop`).
     """
-    from lightning.fabric.plugins.environments import SLURMEnvironment
-
-    requeue_signal = signal.SIGUSR1 if SLURMEnvironment.detect() else None  # Lightning's default requeue signal
-    with ddp_children_run_this_job(), handle_signals(requeue_signal):
+    with ddp_children_run_this_job(), handle_signals(requeue_signals()):
         return _train(cfg)
 
 

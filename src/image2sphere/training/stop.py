@@ -17,9 +17,10 @@ The rule
   broadcasts from inside the handler, wherever the main thread was interrupted (in ``optimizer.step``,
   say), while the other ranks may be in another collective, which deadlocked DDP runs; and each rank
   checked its own flag at points of its own, so one rank could stop while the others waited for it.
-* SLURM's requeue signal (``SLURMEnvironment(auto_requeue=True)``, ``#SBATCH --signal=SIGUSR1@90``) takes
-  the same path; after ``last.ckpt`` is written, rank 0 asks SLURM to requeue the job
-  (``scontrol requeue <job id>``), which continues from that checkpoint in the same directory.
+* SLURM's requeue signal takes the same path (:func:`requeue_signals`: SIGUSR1 for Lightning's SLURM
+  auto-requeue, ``#SBATCH --signal=SIGUSR1@90``; SIGUSR2 for submitit's, ``hydra/launcher=slurm``); after
+  ``last.ckpt`` is written the job is requeued (:func:`requeue_job`) and continues from that checkpoint
+  in the same directory.
 
 Data-loading workers ignore SIGINT and SIGTERM (:func:`ignore_in_worker`): the main process decides, and
 shuts them down.
@@ -34,7 +35,7 @@ import re
 import signal
 import subprocess
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from typing import Any
 
 import lightning.pytorch as pl
@@ -50,7 +51,8 @@ __all__ = [
     "decide",
     "handle_signals",
     "ignore_in_worker",
-    "requeue_slurm_job",
+    "requeue_job",
+    "requeue_signals",
     "requested",
     "use_flag_only_signals",
 ]
@@ -68,7 +70,8 @@ class _Request:
 
     def __init__(self) -> None:
         self.signum: int | None = None
-        self.requeue_signum: int | None = None
+        self.requeue_signums: frozenset[int] = frozenset()
+        self.previous: dict[int, Any] = {}  # the handlers that were in place before the run's
         self.count = 0
 
     def record(self, signum: int, _frame: Any) -> None:
@@ -87,7 +90,7 @@ class _Request:
     def priority(self) -> int:
         if self.signum is None:
             return 0
-        if self.signum == self.requeue_signum:
+        if self.signum in self.requeue_signums:
             return _REQUEUE_PRIORITY
         return _PRIORITY.get(self.signum, _PRIORITY[signal.SIGTERM])
 
@@ -100,20 +103,34 @@ def requested() -> int | None:
     return _REQUEST.signum
 
 
+def requeue_signals() -> set[int]:
+    """The signals on which this process saves and has its SLURM job requeued (read before the run's own
+    handlers are installed): Lightning's, SIGUSR1, inside a SLURM job (``SLURMEnvironment``'s default
+    ``requeue_signal``, sent by ``#SBATCH --signal=SIGUSR1@90``); and SIGUSR2 where something in this
+    process already handles it: submitit, which runs the jobs of ``hydra/launcher=slurm`` and requeues
+    them on SIGUSR2 (its handler then runs after ``last.ckpt`` is written, see :func:`requeue_job`)."""
+    signums = set()
+    if SLURMEnvironment.detect():
+        signums.add(int(signal.SIGUSR1))
+    if callable(signal.getsignal(signal.SIGUSR2)):
+        signums.add(int(signal.SIGUSR2))
+    return signums
+
+
 @contextlib.contextmanager
-def handle_signals(requeue_signal: int | None = None) -> Iterator[None]:
-    """For the duration of the block, SIGINT, SIGTERM (and ``requeue_signal`` where given) only record a
-    request that :func:`decide` reads; the previous handlers come back afterwards. Outside the main
-    thread (where Python allows no handlers) it does nothing."""
+def handle_signals(requeue_signals: Iterable[int] = ()) -> Iterator[None]:
+    """For the duration of the block, SIGINT, SIGTERM and ``requeue_signals`` only record a request that
+    :func:`decide` reads; the previous handlers come back afterwards (a requeue signal's previous handler
+    is also what :func:`requeue_job` calls). Outside the main thread (where Python allows no handlers) it
+    does nothing."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    signums = [signal.SIGINT, signal.SIGTERM]
-    if requeue_signal is not None and requeue_signal not in signums:
-        signums.append(requeue_signal)
-    previous = {s: signal.getsignal(s) for s in signums}
+    signums = [signal.SIGINT, signal.SIGTERM, *(s for s in requeue_signals if s not in (signal.SIGINT, signal.SIGTERM))]
+    previous = {int(s): signal.getsignal(s) for s in signums}
     _REQUEST.signum, _REQUEST.count = None, 0
-    _REQUEST.requeue_signum = requeue_signal
+    _REQUEST.requeue_signums = frozenset(int(s) for s in requeue_signals)
+    _REQUEST.previous = previous
     for s in signums:
         signal.signal(s, _REQUEST.record)
     try:
@@ -121,15 +138,7 @@ def handle_signals(requeue_signal: int | None = None) -> Iterator[None]:
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler if handler is not None else signal.SIG_DFL)
-
-
-def slurm_requeue_signal(trainer: Any) -> int | None:
-    """The signal on which the run saves and has SLURM requeue it: Lightning's ``SLURMEnvironment``'s
-    ``requeue_signal`` when auto-requeue is on (the default under SLURM), else ``None``."""
-    environment = getattr(getattr(trainer, "_accelerator_connector", None), "cluster_environment", None)
-    if isinstance(environment, SLURMEnvironment) and environment.auto_requeue:
-        return int(environment.requeue_signal)
-    return None
+        _REQUEST.requeue_signums, _REQUEST.previous = frozenset(), {}
 
 
 class StopRequested(Exception):
@@ -238,8 +247,8 @@ class StopOnRequest(pl.Callback):
         if may_save and checkpoint is not None and hasattr(checkpoint, "save_last_now"):
             path = checkpoint.save_last_now(trainer)  # every rank takes part; rank 0 writes
         requeued = False
-        if signum == slurm_requeue_signal(trainer) and path is not None and trainer.is_global_zero:
-            requeued = requeue_slurm_job()
+        if signum in _REQUEST.requeue_signums and path is not None:
+            requeued = requeue_job(signum, trainer)
         raise TrainingInterrupted(signum, path, trainer.current_epoch, trainer.global_step, requeued)
 
 
@@ -263,10 +272,25 @@ def use_flag_only_signals(trainer: Any) -> None:
         trainer.callbacks.append(StopOnRequest())
 
 
-def requeue_slurm_job() -> bool:
-    """Ask SLURM to requeue this job (``scontrol requeue <job id>``); ``True`` if it said yes."""
+def requeue_job(signum: int, trainer: Any) -> bool:
+    """After ``last.ckpt`` was written on a requeue signal: have the SLURM job requeued; ``True`` if asked.
+
+    Where another handler had that signal before the run (submitit's, for ``hydra/launcher=slurm``), it is
+    called now, on every rank, in ordinary code instead of in the middle of a step: submitit requeues the
+    job from its task 0 and ends that process. Otherwise rank 0 runs ``scontrol requeue <job id>``
+    (Lightning's SLURM auto-requeue, unless the trainer's ``SLURMEnvironment`` turns it off)."""
     from image2sphere.training.cluster import slurm_job_id
 
+    previous = _REQUEST.previous.get(int(signum))
+    if callable(previous) and previous is not _REQUEST.record:
+        previous(signum, None)
+        return True
+    environment = getattr(getattr(trainer, "_accelerator_connector", None), "cluster_environment", None)
+    if isinstance(environment, SLURMEnvironment) and not environment.auto_requeue:
+        log.info("SLURM auto-requeue is off (SLURMEnvironment(auto_requeue=False)): the job is not requeued")
+        return False
+    if not trainer.is_global_zero:
+        return False
     job = slurm_job_id()
     if job is None or not re.fullmatch(r"[0-9_]+", job):
         log.warning("requeue signal outside a SLURM job (no SLURM_JOB_ID): the job is not requeued")

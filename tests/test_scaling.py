@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import inspect
 import math
+import os
 import re
 import subprocess
 import sys
@@ -283,7 +284,7 @@ SLURM = {"SLURM_JOB_ID": "5151", "SLURM_NTASKS": "1", "SLURM_JOB_NAME": "i2s", "
          "SLURM_LOCALID": "0", "SLURM_NODEID": "0", "SLURM_NODELIST": "localhost"}  # fmt: skip
 
 
-def test_requeue_checkpoint_is_the_runs_last_checkpoint_only_in_a_restarted_slurm_job(tmp_path, monkeypatch):
+def test_requeue_checkpoint_is_the_runs_newest_checkpoint_only_in_a_restarted_slurm_job(tmp_path, monkeypatch):
     (tmp_path / "checkpoints").mkdir()
     (tmp_path / "checkpoints" / "last.ckpt").write_bytes(b"x")
     for name, value in SLURM.items():
@@ -292,8 +293,12 @@ def test_requeue_checkpoint_is_the_runs_last_checkpoint_only_in_a_restarted_slur
     assert not is_slurm_requeue(tmp_path) and requeue_checkpoint(tmp_path) is None  # a first start
     monkeypatch.setenv("SLURM_RESTART_COUNT", "2")
     assert is_slurm_requeue(tmp_path) and requeue_checkpoint(tmp_path) == str(tmp_path / "checkpoints" / "last.ckpt")
-    (tmp_path / "hpc_ckpt_1.ckpt").write_bytes(b"x")
-    assert is_slurm_requeue(tmp_path) and requeue_checkpoint(tmp_path) is None  # Lightning's own applies
+    hpc = tmp_path / "hpc_ckpt_1.ckpt"  # left by an earlier version (Lightning's own requeue): the newer wins
+    hpc.write_bytes(b"x")
+    os.utime(hpc, ns=(1, 1))
+    assert requeue_checkpoint(tmp_path) == str(tmp_path / "checkpoints" / "last.ckpt")
+    os.utime(hpc, ns=(2 * 10**18, 2 * 10**18))
+    assert is_slurm_requeue(tmp_path) and requeue_checkpoint(tmp_path) == str(hpc)
     monkeypatch.delenv("SLURM_JOB_ID")
     assert not is_slurm_requeue(tmp_path)  # not in SLURM: a restart count means nothing
 

@@ -71,11 +71,15 @@ def is_slurm_requeue(output_dir: Path) -> bool:
 
 
 def requeue_checkpoint(output_dir: Path) -> str | None:
-    """The checkpoint a requeued SLURM job continues from when Lightning's own does not apply: the run's
-    ``last.ckpt`` when there is no ``hpc_ckpt_*.ckpt`` (which Lightning finds by itself)."""
-    if not is_slurm_requeue(output_dir) or any(output_dir.glob("hpc_ckpt_*.ckpt")):
+    """The checkpoint a requeued SLURM job continues from: the run's ``last.ckpt`` (which the run writes on
+    the requeue signal, :mod:`image2sphere.training.stop`), or an ``hpc_ckpt_*.ckpt`` that an earlier
+    version (Lightning's own requeue) left, whichever was written last. Given to Lightning explicitly, so
+    that an old ``hpc_ckpt`` never wins over a newer ``last.ckpt``."""
+    if not is_slurm_requeue(output_dir):
         return None
-    return str(output_dir / "checkpoints" / "last.ckpt")
+    candidates = [*output_dir.glob("hpc_ckpt_*.ckpt"), output_dir / "checkpoints" / "last.ckpt"]
+    existing = [p for p in candidates if p.is_file()]
+    return str(max(existing, key=lambda p: p.stat().st_mtime_ns)) if existing else None
 
 
 @contextlib.contextmanager

@@ -843,6 +843,15 @@ def check_verify(argv, proc, args: list[str], ws: Workspace) -> None:
         assert "synthetic images/" in proc.stdout, info
 
 
+def check_preemption(argv, proc, args: list[str], ws: Workspace) -> None:
+    """The pre-emption stress check takes about 25 minutes: here its schedule (``--dry-run``, added); its
+    moments run for real in test_scaling (the hardest two) and as the script itself."""
+    assert proc.returncode == 0, describe(argv, proc)
+    lines = [line.split() for line in proc.stdout.splitlines() if line[:2].strip().isdigit()]
+    assert len(lines) == 22 and {w[2] for w in lines} == {"rank0", "group"}, proc.stdout
+    assert "-m src.train trainer=ddp trainer.devices=2" in proc.stdout, proc.stdout
+
+
 def check_fixtures(argv, proc, args: list[str], ws: Workspace) -> None:
     assert proc.returncode == 0, describe(argv, proc)
     root = ws.root / args[-1]
@@ -1135,11 +1144,14 @@ def test_documented_command(command: Command, fixtures_root, checkpoint_run, tmp
         "image2sphere.data.verify": check_verify,
         "image2sphere.data.fixtures": check_fixtures,
         "image2sphere.data.render": check_render,
+        "image2sphere.testing.preemption": check_preemption,
         "src.tables": check_tables,
     }
     assert module in checks, f"no runner for python -m {module} (shown at {command.where})"
     if module in ("src.eval", "src.predict"):
         argv += [f"paths.log_dir={ws.root / 'logs'}"]
+    if module == "image2sphere.testing.preemption":
+        argv += ["--dry-run"]
     if module == "src.tables":  # the sweeps it reads: a finished run for every job of the table
         given = tables_options(rest)
         for run_dir in given.run_dirs:

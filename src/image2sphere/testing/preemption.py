@@ -398,7 +398,17 @@ def main(argv: list[str] | None = None) -> int:
                         "counts as hung (default: bound + 240)")  # fmt: skip
     parser.add_argument("--out", type=Path, default=None, help="folder for the runs (default: a new temporary one)")
     parser.add_argument("--keep", action="store_true", help="keep the runs' folders of moments that passed")
+    parser.add_argument("--dry-run", action="store_true", help="print the schedule and the run's command, run nothing")
     args = parser.parse_args(argv)
+    if args.dry_run:
+        moments = schedule(args.moments, args.seed)
+        if args.only is not None:
+            moments = [m for m in moments if m.name in args.only]
+        print(" ".join(train_argv([], Path("<out>/data"), Path("<out>/<moment>/stopped"))[1:]))
+        for i, m in enumerate(moments):
+            sender = f"sent by rank {m.rank}" if not m.timed else "sent from outside"
+            print(f"{i:2d} {m.name:42s} {m.target:6s} {sender}")
+        return 0
     if not Path("src/train.py").is_file():
         parser.error("run it from the repository root (python -m src.train must work there)")
     import tempfile

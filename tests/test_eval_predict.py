@@ -4,6 +4,7 @@ on a tiny checkpoint trained inside the test."""
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -148,3 +149,25 @@ def test_corrupt_or_foreign_checkpoints_give_clear_errors(trained, tmp_path):
     # and from the command line
     proc = _run("src.eval", [f"ckpt_path={truncated}", f"hydra.run.dir={tmp_path / 'e'}"], check=False)
     assert proc.returncode != 0 and "is not a complete checkpoint" in proc.stderr
+
+
+def test_sigterm_in_the_eval_test_stops_after_that_batch_and_writes_nothing(trained, tmp_path, monkeypatch):
+    """src.eval takes the same stop path as training (image2sphere.training.stop): the signal is recorded,
+    the test stops after its batch, rank 0 says so and exits with 143; no metrics are written."""
+    import image2sphere.training.evaluate as evaluate
+    from image2sphere.testing.preemption import SignalAt
+
+    switch_off = evaluate.use_flag_only_signals
+
+    def with_a_signal_in_the_test(trainer):
+        switch_off(trainer)
+        trainer.callbacks.append(SignalAt("test", occurrence=1))
+
+    monkeypatch.setattr(evaluate, "use_flag_only_signals", with_a_signal_in_the_test)
+    ckpt, _, _ = trained
+    out = tmp_path / "eval"
+    proc = _run("src.eval", [f"ckpt_path={ckpt}", f"hydra.run.dir={out}", "eval_grid_level=3", "batch_size=2",
+                             "plots=0"], check=False)  # fmt: skip
+    assert proc.returncode == 128 + signal.SIGTERM, proc.stderr[-3000:]
+    assert "Stopped by SIGTERM in the test; nothing was written" in proc.stdout + proc.stderr
+    assert not (out / "metrics.json").exists()

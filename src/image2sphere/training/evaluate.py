@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import logging
+import signal
 import time
 from pathlib import Path
 
@@ -27,9 +28,10 @@ from omegaconf import DictConfig, OmegaConf
 
 from image2sphere.reporting.metrics_table import format_metrics_markdown, format_metrics_table
 from image2sphere.training.checkpoint import AtomicCheckpointIO, CheckpointError, build_module, load_checkpoint
-from image2sphere.training.cluster import ddp_children_run_this_job
+from image2sphere.training.cluster import ddp_children_run_this_job, is_secondary_rank
 from image2sphere.training.pipeline import finish_loggers, fit_recalibration_on, instantiate_list
 from image2sphere.training.run_config import check_eval_config, command_line, override_key
+from image2sphere.training.stop import StopRequested, handle_signals, use_flag_only_signals
 
 __all__ = ["evaluate", "recalibrated_path"]
 
@@ -104,6 +106,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
         )
     loggers = instantiate_list(cfg.get("logger"), "logger")
     trainer: pl.Trainer = instantiate(cfg.trainer, logger=loggers or False, callbacks=[], enable_checkpointing=False)
+    use_flag_only_signals(trainer)  # a signal stops every rank after the same test batch (training/stop.py)
     if recalibration == "off":
         module.recalibration = None
     elif recalibration == "fit":
@@ -111,8 +114,16 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     elif module.recalibration is not None:
         log.info("Recalibration stored in %s: %s", cfg.ckpt_path, module.recalibration.describe())
     start = time.perf_counter()
-    with ddp_children_run_this_job():  # in a multirun job, the other DDP ranks start as this job
-        trainer.test(model=module, datamodule=datamodule)
+    with ddp_children_run_this_job(), handle_signals():  # in a multirun job, the other DDP ranks start as this job
+        try:
+            trainer.test(model=module, datamodule=datamodule)
+        except StopRequested as e:
+            finish_loggers(loggers)
+            if is_secondary_rank():  # rank 0 says it; a non-zero exit of a rank would make Lightning kill rank 0
+                raise SystemExit(0) from None
+            log.warning("Stopped by %s %s; nothing was written (run the same command again to evaluate)",
+                        signal.Signals(e.signum).name, e.where)  # fmt: skip
+            raise SystemExit(128 + e.signum) from None
     metrics = {**module.test_metrics, "test_seconds": time.perf_counter() - start}
     if trainer.is_global_zero:
         output_dir.mkdir(parents=True, exist_ok=True)

@@ -178,7 +178,7 @@ def test_resume_rebuilds_model_and_data_from_the_checkpoint_config(tmp_path, tra
     cmd = [sys.executable, "-m", "src.train", f"ckpt_path={ckpt}", "trainer.max_epochs=2", "model.optimizer.lr=0.5",
            "logger=none", f"paths.data_dir={data_dir}", f"paths.log_dir={tmp_path}", f"hydra.run.dir={resumed}",
            "callbacks.progress_bar.refresh_rate=0", "trainer.accelerator=cpu"]  # fmt: skip
-    proc = subprocess.run(cmd, cwd=REPO, env=ENV, capture_output=True, text=True, timeout=600)
+    proc = run_group(cmd, cwd=REPO, env=ENV, timeout=600)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0, out[-4000:]
     assert "from the checkpoint's stored config" in out

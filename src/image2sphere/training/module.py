@@ -399,6 +399,9 @@ class PoseEstimationModule(pl.LightningModule):
         reduce = None
         if trainer is not None and trainer.world_size > 1 and torch.distributed.is_initialized():
             reduce = self._sum_over_processes
+            # the split's size, not this rank's share: what the fit reports, and the same grid on every rank
+            # (and as on one process) where its size decides the grid (recalibration.fit_level)
+            n_images = int(reduce(torch.tensor([n_images], dtype=torch.int64)).item())
         if not batches and reduce is None:  # nothing to fit on (a distributed run has checked its loader)
             return None
         num_classes = len(self.class_names) if self.class_names else None

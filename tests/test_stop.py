@@ -20,6 +20,7 @@ import torch
 from torch import nn
 from torch.utils.data import DataLoader, TensorDataset
 
+from image2sphere.testing.commands import process_group
 from image2sphere.testing.preemption import MOMENT_PHASES, SignalAt, group_alive, schedule
 from image2sphere.training import stop
 from image2sphere.training.checkpoint import AtomicCheckpointIO, EpochCheckpoint, batches_done_in_epoch
@@ -70,16 +71,45 @@ def test_the_requeue_signal_is_recorded_and_its_handler_restored():
         assert signal.getsignal(signal.SIGUSR1) is before
 
 
-def test_data_loading_workers_ignore_the_stop_signals():
-    from image2sphere.data.workers import init_worker
+WORKER_SCRIPT = """
+import os, subprocess, sys, time
+import torch
+from torch.utils.data import DataLoader, Dataset
+from image2sphere.data.workers import init_worker
 
-    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        init_worker(0)  # outside a worker it only sets the handlers
-        assert signal.getsignal(signal.SIGINT) == signal.getsignal(signal.SIGTERM) == signal.SIG_IGN
-    finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
+class Slow(Dataset):
+    def __len__(self):
+        return 1000
+    def __getitem__(self, i):
+        time.sleep(0.005)
+        return torch.tensor([i])
+
+loader = DataLoader(Slow(), batch_size=2, num_workers=1, persistent_workers=True, worker_init_fn=init_worker)
+it = iter(loader)
+next(it)
+(worker,) = [w.pid for w in it._workers]
+print("worker", worker, flush=True)
+subprocess.run(["kill", "-TERM", str(worker)], check=True)  # from another process: left to the rank
+subprocess.run(["kill", "-INT", str(worker)], check=True)
+time.sleep(0.5)
+batches = [next(it)[0, 0].item() for _ in range(5)]
+print("served", batches, flush=True)
+# the script ends with the persistent worker alive: Python's multiprocessing terminates it at exit (SIGTERM
+# from this process), which the worker must obey, or this process waits for it for ever
+"""
+
+
+@pytest.mark.slow
+def test_loader_workers_ignore_a_signal_from_outside_and_obey_their_ranks_terminate():
+    import subprocess
+
+    with process_group([sys.executable, "-c", WORKER_SCRIPT], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                       text=True) as proc:  # fmt: skip
+        out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err[-3000:]
+    worker = int(out.split("worker ")[1].split()[0])
+    assert "served [2, 4, 6, 8, 10]" in out, out + err[-2000:]  # the worker lived on after SIGTERM and SIGINT
+    assert not group_alive(proc.pid) and not os.path.exists(f"/proc/{worker}/stat")
 
 
 # ------------------------------------------------------------------ the decision on two processes (gloo)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 
 from torch.utils.data import get_worker_info
 
@@ -19,6 +20,7 @@ __all__ = [
     "AUTO",
     "AUTO_WORKERS_CAP",
     "auto_num_workers",
+    "obey_sigterm_from_parent_only",
     "available_cpus",
     "check_num_workers",
     "init_worker",
@@ -78,12 +80,34 @@ def init_worker(worker_id: int) -> None:
     ``init_worker()`` on the worker's copy of the dataset when it has one (the ModelNet10-SO(3) reader
     closes the LMDB environments inherited through ``fork`` there; each worker opens its own on first read).
 
-    Workers ignore SIGINT and SIGTERM: a signal sent to the whole process group (Ctrl-C in a terminal,
-    SLURM's pre-emption) must not kill a worker under its rank. The rank decides when to stop
-    (:mod:`image2sphere.training.stop`) and shuts its workers down; a worker whose rank died exits by itself."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    Signals (:func:`obey_sigterm_from_parent_only`): a Ctrl-C or a SIGTERM sent to the whole process group
+    (a terminal, SLURM's pre-emption) must not kill a worker under its rank, which decides when to stop
+    (:mod:`image2sphere.training.stop`) and then shuts its workers down."""
+    obey_sigterm_from_parent_only()
+    info = get_worker_info()
     info = get_worker_info()
     init = getattr(info.dataset, "init_worker", None) if info is not None else None
     if callable(init):
         init()
+
+
+def obey_sigterm_from_parent_only() -> None:
+    """In a loader worker: ignore Ctrl-C; obey a SIGTERM only when the worker's own process (its rank) sent
+    it, and ignore one from anyone else.
+
+    A rank ends its persistent workers at exit with ``Process.terminate()``, a SIGTERM (torch leaves them
+    to Python's ``multiprocessing`` then), so a worker that ignored every SIGTERM would keep its rank
+    waiting forever at exit (seen: a DDP rank hung in ``multiprocessing``'s exit function). A SIGTERM from
+    outside (``kill``, ``scancel``, SLURM signalling every process of the job) is left to the rank. The
+    signal is blocked in the worker and taken by a thread that reads who sent it (``sigwaitinfo``)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    parent = os.getppid()
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})  # threads started from here on inherit it
+
+    def take_sigterm() -> None:
+        while True:
+            info = signal.sigwaitinfo({signal.SIGTERM})
+            if info.si_pid == parent or os.getppid() != parent:  # the rank (or the rank is gone)
+                os._exit(128 + signal.SIGTERM)
+
+    threading.Thread(target=take_sigterm, name="sigterm-from-rank", daemon=True).start()

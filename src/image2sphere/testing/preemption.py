@@ -93,7 +93,8 @@ TIMED = ("after_start", "after_first_checkpoint")
 # ---------------------------------------------------------------------------------------------- in the run
 class SignalAt(pl.Callback):
     """A Lightning callback that sends ``signal`` from inside ``phase`` (its ``occurrence``-th time on
-    ``rank``) to this process (``target="rank"``) or to the run's whole process group (``"group"``).
+    ``rank``) to this process (``target="rank"``) or, through a process of its own, to the run's whole
+    process group (``"group"``).
     ``stamp``: a file that receives the time it was sent. Given on the command line, e.g.
     ``+callbacks.signal_at._target_=image2sphere.testing.preemption.SignalAt +callbacks.signal_at.phase=...``.
     """
@@ -115,8 +116,9 @@ class SignalAt(pl.Callback):
             return
         if self.stamp:
             Path(self.stamp).write_text(f"{time.time()}\n")
-        if self.target == "group":
-            os.killpg(os.getpgrp(), self.signum)
+        if self.target == "group":  # sent by another process, as SLURM or kill do; delivered before it returns
+            code = "import os, sys; os.killpg(int(sys.argv[1]), int(sys.argv[2]))"
+            subprocess.run([sys.executable, "-S", "-c", code, str(os.getpgrp()), str(self.signum)], check=True)
         else:
             os.kill(os.getpid(), self.signum)
 

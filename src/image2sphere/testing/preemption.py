@@ -118,7 +118,8 @@ class SignalAt(pl.Callback):
             Path(self.stamp).write_text(f"{time.time()}\n")
         if self.target == "group":  # sent by another process, as SLURM or kill do; delivered before it returns
             code = "import os, sys; os.killpg(int(sys.argv[1]), int(sys.argv[2]))"
-            subprocess.run([sys.executable, "-S", "-c", code, str(os.getpgrp()), str(self.signum)], check=True)
+            subprocess.run([sys.executable, "-S", "-c", code, str(os.getpgrp()), str(self.signum)], check=True,
+                           start_new_session=True)  # outside the group it signals  # fmt: skip
         else:
             os.kill(os.getpid(), self.signum)
 

@@ -7,8 +7,9 @@ The rule
   a file or raises (except a second Ctrl-C, which stops at once as Python does by default).
 * The ranks **decide together** (:func:`decide`, one all-reduce of every rank's request) at fixed points
   that every rank passes the same number of times: when fitting starts (after the process group
-  exists), when training starts (after the sanity check), at the end of every training batch and of
-  every training epoch, before the recalibration, before the test and after every test batch. When any
+  exists), when training starts (after the sanity check), at the end of every training batch (but an
+  epoch's last, whose epoch end decides after its validation) and of every training epoch, before the
+  recalibration, before the test and after every test batch. When any
   rank was asked, all of them stop at that point: in training after writing ``last.ckpt``
   (:class:`~image2sphere.training.checkpoint.EpochCheckpoint`), in the test without writing anything.
 * The validation pass in progress is finished first (a stop in its middle would make the resumed run
@@ -22,8 +23,8 @@ The rule
   ``last.ckpt`` is written the job is requeued (:func:`requeue_job`) and continues from that checkpoint
   in the same directory.
 
-Data-loading workers ignore SIGINT and SIGTERM (:func:`ignore_in_worker`): the main process decides, and
-shuts them down.
+Data-loading workers ignore Ctrl-C and a SIGTERM from outside; they obey only their own rank, which decides
+and shuts them down (:func:`image2sphere.data.workers.obey_sigterm_from_parent_only`).
 """
 
 from __future__ import annotations
@@ -50,7 +51,6 @@ __all__ = [
     "TrainingInterrupted",
     "decide",
     "handle_signals",
-    "ignore_in_worker",
     "requeue_job",
     "requeue_signals",
     "requested",
@@ -305,11 +305,3 @@ def requeue_job(signum: int, trainer: Any) -> bool:
         return False
     log.info("Requeued SLURM job %s: it continues from its last.ckpt", job)
     return True
-
-
-def ignore_in_worker() -> None:
-    """In a data-loading worker: SIGINT and SIGTERM are ignored (the main process decides, and ends the
-    workers), so that a signal sent to the whole process group does not kill a worker under a rank."""
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)

@@ -28,10 +28,10 @@ from omegaconf import DictConfig, OmegaConf
 
 from image2sphere.reporting.metrics_table import format_metrics_markdown, format_metrics_table
 from image2sphere.training.checkpoint import AtomicCheckpointIO, CheckpointError, build_module, load_checkpoint
-from image2sphere.training.cluster import ddp_children_run_this_job, is_secondary_rank
+from image2sphere.training.cluster import ddp_children_run_this_job
 from image2sphere.training.pipeline import finish_loggers, fit_recalibration_on, instantiate_list
 from image2sphere.training.run_config import check_eval_config, command_line, override_key
-from image2sphere.training.stop import StopRequested, handle_signals, use_flag_only_signals
+from image2sphere.training.stop import StopRequested, exit_after_stop, handle_signals, use_flag_only_signals
 
 __all__ = ["evaluate", "recalibrated_path"]
 
@@ -119,11 +119,9 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
             trainer.test(model=module, datamodule=datamodule)
         except StopRequested as e:
             finish_loggers(loggers)
-            if is_secondary_rank():  # rank 0 says it; a non-zero exit of a rank would make Lightning kill rank 0
-                raise SystemExit(0) from None
-            log.warning("Stopped by %s %s; nothing was written (run the same command again to evaluate)",
-                        signal.Signals(e.signum).name, e.where)  # fmt: skip
-            raise SystemExit(128 + e.signum) from None
+            name = signal.Signals(e.signum).name
+            exit_after_stop(e.signum, f"Stopped by {name} {e.where}; nothing was written (run the same command again "
+                            "to evaluate)")  # fmt: skip
     metrics = {**module.test_metrics, "test_seconds": time.perf_counter() - start}
     if trainer.is_global_zero:
         output_dir.mkdir(parents=True, exist_ok=True)

@@ -36,6 +36,7 @@ from image2sphere.training.stop import (
     StopRequested,
     TrainingInterrupted,
     decide_or_raise,
+    exit_after_stop,
     handle_signals,
     requested,
     requeue_signals,
@@ -264,11 +265,8 @@ def _no_other_rank_yet(trainer: pl.Trainer) -> bool:
 
 
 def _exit_interrupted(e: TrainingInterrupted | StopRequested, output_dir: Path, resumed_from: str | None) -> None:
-    """End the process after a stop the ranks decided together: rank 0 says what was kept and how to go
-    on, and exits with 128 + the signal's number; the other ranks exit with 0 (a non-zero exit of a rank
-    that Lightning started makes it kill the others at once, rank 0 perhaps in the middle of a write)."""
-    if is_secondary_rank():
-        raise SystemExit(0)
+    """End the process after a stop the ranks decided together (:func:`~image2sphere.training.stop.exit_after_stop`),
+    saying what was kept and how to go on."""
     name = signal.Signals(e.signum).name
     if isinstance(e, StopRequested):
         last = output_dir / "checkpoints" / "last.ckpt"
@@ -292,8 +290,7 @@ def _exit_interrupted(e: TrainingInterrupted | StopRequested, output_dir: Path, 
         message = f"Training stopped by {name} in epoch {e.epoch} (global step {e.step}); no checkpoint was written"
         if resumed_from is not None:
             message += f". Resume again with: python -m src.train ckpt_path={resumed_from}"
-    log.warning(message)
-    raise SystemExit(128 + e.signum)
+    exit_after_stop(e.signum, message)
 
 
 def finish_loggers(loggers: list) -> None:

@@ -37,12 +37,14 @@ import signal
 import subprocess
 import threading
 from collections.abc import Iterable, Iterator
-from typing import Any
+from typing import Any, NoReturn
 
 import lightning.pytorch as pl
 import torch
 from lightning.fabric.plugins.environments import SLURMEnvironment
 from lightning.pytorch.trainer.connectors.signal_connector import _SignalConnector
+
+from image2sphere.training.cluster import is_secondary_rank, slurm_job_id
 
 __all__ = [
     "FlagOnlySignalConnector",
@@ -50,6 +52,7 @@ __all__ = [
     "StopRequested",
     "TrainingInterrupted",
     "decide",
+    "exit_after_stop",
     "handle_signals",
     "requeue_job",
     "requeue_signals",
@@ -72,10 +75,8 @@ class _Request:
         self.signum: int | None = None
         self.requeue_signums: frozenset[int] = frozenset()
         self.previous: dict[int, Any] = {}  # the handlers that were in place before the run's
-        self.count = 0
 
     def record(self, signum: int, _frame: Any) -> None:
-        self.count += 1
         if signum == signal.SIGINT and self.signum == signal.SIGINT:
             raise KeyboardInterrupt  # the second Ctrl-C: stop at once
         if self.signum is None:
@@ -128,7 +129,7 @@ def handle_signals(requeue_signals: Iterable[int] = ()) -> Iterator[None]:
         return
     signums = [signal.SIGINT, signal.SIGTERM, *(s for s in requeue_signals if s not in (signal.SIGINT, signal.SIGTERM))]
     previous = {int(s): signal.getsignal(s) for s in signums}
-    _REQUEST.signum, _REQUEST.count = None, 0
+    _REQUEST.signum = None
     _REQUEST.requeue_signums = frozenset(int(s) for s in requeue_signals)
     _REQUEST.previous = previous
     for s in signums:
@@ -163,6 +164,17 @@ class TrainingInterrupted(Exception):
         name = signal.Signals(self.signum).name
         where = f"checkpoint written to {checkpoint}" if checkpoint else "no checkpoint could be written"
         super().__init__(f"training stopped by {name} in epoch {epoch} at global step {step}; {where}")
+
+
+def exit_after_stop(signum: int, message: str) -> NoReturn:
+    """End the process after a stop the ranks decided together: rank 0 logs ``message`` (where it stopped,
+    what was kept, how to go on) and exits with 128 + ``signum``; the other ranks exit with 0 (a non-zero
+    exit of a rank that Lightning started makes it kill the others at once, rank 0 perhaps in the middle
+    of a write)."""
+    if is_secondary_rank():
+        raise SystemExit(0)
+    log.warning(message)
+    raise SystemExit(128 + int(signum))
 
 
 def decide(trainer: Any = None) -> int | None:
@@ -279,8 +291,6 @@ def requeue_job(signum: int, trainer: Any) -> bool:
     called now, on every rank, in ordinary code instead of in the middle of a step: submitit requeues the
     job from its task 0 and ends that process. Otherwise rank 0 runs ``scontrol requeue <job id>``
     (Lightning's SLURM auto-requeue, unless the trainer's ``SLURMEnvironment`` turns it off)."""
-    from image2sphere.training.cluster import slurm_job_id
-
     previous = _REQUEST.previous.get(int(signum))
     if callable(previous) and previous is not _REQUEST.record:
         previous(signum, None)

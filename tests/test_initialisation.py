@@ -60,6 +60,7 @@ def build(variant: str, depth: int = 18, **kw) -> torch.nn.Module:
         "two_so3_conv": {"n_so3_conv": 2},
         "tube_kernel": {"so3_kernel": "tube"},
         "fan_in_init": {"init": "fan_in"},
+        "kaiming_uniform_init": {"init": "kaiming_uniform"},
     }[variant]
     return I2S(encoder, image_size=SIZE, lmax=6, **{"output_init": "random", **options, **kw})
 
@@ -73,6 +74,7 @@ VARIANTS = [
     "tube_kernel",
     "fourier_mlp",
     "fan_in_init",
+    "kaiming_uniform_init",
 ]
 
 
@@ -240,6 +242,60 @@ def test_tube_grid_has_the_shape_of_the_original_kernel():
     assert tilt.max() <= max_beta + 1e-9 and tilt.min() > 0
     angle = torch.arccos(((G.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1))
     assert int((angle <= max_beta + 1e-9).sum()) == 42 and angle.max() > math.radians(150)
+
+
+# ------------------------------------------------------------------ the original code's initialisation
+@pytest.mark.parametrize("filter_kind", ["harmonic", "spatial"])
+def test_kaiming_uniform_s2_filter_is_the_original_codes_draw(filter_kind):
+    """``init="kaiming_uniform"``: the ``[f_in, f_out, n]`` weights are ``kaiming_uniform_``'s draw, whose
+    fan-in is ``f_out * n`` (std ``sqrt(2 / (f_out n))``, 0.071 for the harmonic filter at f_out 8, lmax 6;
+    every weight within ``sqrt(6 / (f_out n))``), and the forward pass scales by ``1 / sqrt(f_in)``."""
+    lmax, f_in, f_out = 6, 64, 8
+    torch.manual_seed(0)
+    conv = S2Conv(f_in, f_out, lmax=lmax, filter=filter_kind, init="kaiming_uniform")
+    w = conv.weight.detach()
+    n = w.shape[-1]
+    assert w.shape[:2] == (f_in, f_out) and n == (n_s2_coeffs(lmax) if filter_kind == "harmonic" else 192)
+    std, bound = math.sqrt(2 / (f_out * n)), math.sqrt(6 / (f_out * n))
+    if filter_kind == "harmonic":
+        assert std == pytest.approx(0.0714, abs=1e-4)
+    assert float(w.std()) == pytest.approx(std, rel=0.05)
+    assert float(w.abs().max()) <= bound and float(w.abs().max()) > 0.99 * bound  # uniform: fills (-b, b)
+    assert abs(float(w.mean())) < 0.05 * std
+    assert conv.scale == pytest.approx(1 / math.sqrt(f_in))
+    x = torch.randn(3, f_in, n_s2_coeffs(lmax))
+    with torch.no_grad():
+        out = conv(x)
+        conv.scale = 1.0
+        torch.testing.assert_close(out, conv(x) / math.sqrt(f_in))
+
+
+def test_kaiming_uniform_so3_convolution_is_unit():
+    """The original code's SO(3) convolutions: N(0, 1) parameters scaled by 1 / sqrt(fan_in), i.e.
+    ``"unit"``, drawn from the same generator state to the same weights."""
+    convs = {}
+    for init in ("unit", "kaiming_uniform"):
+        torch.manual_seed(3)
+        convs[init] = SO3Conv(16, 8, lmax=4, init=init)
+    assert torch.equal(convs["kaiming_uniform"].weight, convs["unit"].weight)
+    assert convs["kaiming_uniform"].scale == convs["unit"].scale == 1 / math.sqrt(16 * convs["unit"].weight.shape[-1])
+    x = torch.randn(2, 16, n_so3_coeffs(4))
+    with torch.no_grad():
+        torch.testing.assert_close(convs["kaiming_uniform"](x), convs["unit"](x), rtol=0, atol=0)
+
+
+def test_i2s_kaiming_uniform_init_reaches_its_layers_and_unknown_inits_are_refused(single_thread):
+    net = build("i2s", init="kaiming_uniform", n_so3_conv=2)
+    assert net.s2_conv.init == "kaiming_uniform"
+    assert float(net.s2_conv.weight.detach().std()) == pytest.approx(math.sqrt(2 / (8 * n_s2_coeffs(6))), rel=0.05)
+    so3 = [m for m in net.so3_layers if isinstance(m, SO3Conv)]
+    assert len(so3) == 2 and all(float(m.weight.detach().std()) == pytest.approx(1.0, rel=0.05) for m in so3)
+    with pytest.raises(ValueError, match=r"model\.net\.init must be one of \('fan_in', 'kaiming_uniform', 'unit'\)"):
+        build("i2s", init="kaiming")
+    with pytest.raises(ValueError, match="init must be one of"):
+        S2Conv(4, 2, lmax=2, init="kaiming_normal")
+    with pytest.raises(ValueError, match="init must be one of"):
+        SO3Conv(4, 2, lmax=2, init="xavier")
 
 
 # ------------------------------------------------------------------ a short training run

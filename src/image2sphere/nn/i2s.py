@@ -18,7 +18,7 @@ from image2sphere.distributions.fourier import SO3Distribution, fourier_grid_nll
 from image2sphere.nn.activation import SO3ReLU
 from image2sphere.nn.base import PoseNetwork
 from image2sphere.nn.projector import HarmonicS2Projector, SpatialS2Projector
-from image2sphere.nn.s2_conv import S2Conv
+from image2sphere.nn.s2_conv import INITS, S2Conv
 from image2sphere.nn.so3_conv import SO3Conv
 from image2sphere.so3.grid import so3_tube_grid
 from image2sphere.so3.wigner import check_lmax, degree_scale, n_so3_coeffs, so3_layout
@@ -76,8 +76,11 @@ class I2S(_FourierNetwork):
             (:class:`~image2sphere.nn.SO3ReLU`).
         num_classes: if > 0, the class one-hot is appended to the feature map as constant channels.
         init: initialisation of the S2 and SO(3) convolutions, ``"unit"`` (N(0, 1) parameters scaled
-            in the forward pass) or ``"fan_in"`` (parameters at the scale that keeps the signal's
-            size, as ``nn.Linear``); see :mod:`image2sphere.nn.s2_conv`.
+            in the forward pass), ``"fan_in"`` (parameters at the scale that keeps the signal's size,
+            as ``nn.Linear``) or ``"kaiming_uniform"`` (the original code's: the S2 filter drawn by
+            ``torch.nn.init.kaiming_uniform_``, std 0.071 at 8 output channels and lmax 6, scaled by
+            ``1 / sqrt(sphere_channels)``; the SO(3) convolutions as ``"unit"``); see
+            :mod:`image2sphere.nn.s2_conv`.
         projector_normalization: ``"mean"`` (coefficients independent of the number of projection
             points) or ``"sqrt"``; see :class:`~image2sphere.nn.SpatialS2Projector`.
         so3_kernel: support of the SO(3) filter, ``"local"`` (rotations within ``so3_kernel_max_deg``
@@ -120,6 +123,11 @@ class I2S(_FourierNetwork):
         super().__init__(encoder, image_size, lmax, num_classes)
         if output_init not in OUTPUT_INITS:
             raise ValueError(f"output_init must be one of {OUTPUT_INITS}, got {output_init!r}")
+        if init not in INITS:
+            raise ValueError(
+                f"model.net.init must be one of {INITS}, got {init!r}: 'unit' (the default), 'fan_in', or "
+                "'kaiming_uniform' (the original code's S2 filter draw)"
+            )
         if so3_kernel not in SO3_KERNELS:
             raise ValueError(f"so3_kernel must be one of {SO3_KERNELS}, got {so3_kernel!r}")
         if projector not in PROJECTORS:

@@ -21,6 +21,13 @@ itself, as in ``nn.Linear``. Its output is ``g`` (about 1/3 at lmax 6) times the
 Adam (steps of a fixed size in the parameters) its filter moves ``sqrt(f_in) / g`` times faster
 relative to its size. Both start close to uniform's loss once the projection is a mean over its
 points; on the built-in data ``"fan_in"`` never learned the cube (docs/training_fidelity.md).
+``"kaiming_uniform"`` is the original research code's draw: ``torch.nn.init.kaiming_uniform_`` with
+its default arguments on the ``[f_in, f_out, n]`` weight tensor (``n = (lmax+1)^2`` coefficients, or
+``K`` grid points for the spatial filter), i.e. ``U(-b, b)`` with ``b = sqrt(6 / (f_out * n))`` and
+standard deviation ``sqrt(2 / (f_out * n))`` (0.071 at f_out 8, lmax 6): torch reads dimension 1,
+``f_out``, as the fan-in of a tensor laid out this way. The forward scale is ``1 / sqrt(f_in)``, as
+``"unit"``'s (e3nn's ``o3.Linear`` path normalisation in the original). Its SO(3) convolutions draw as
+``"unit"`` does (:mod:`image2sphere.nn.so3_conv`).
 """
 
 from __future__ import annotations
@@ -37,7 +44,7 @@ from image2sphere.so3.wigner import check_lmax, n_s2_coeffs, so3_layout
 __all__ = ["S2Conv"]
 
 FILTERS = ("harmonic", "spatial")
-INITS = ("fan_in", "unit")
+INITS = ("fan_in", "kaiming_uniform", "unit")
 
 
 class S2Conv(nn.Module):
@@ -47,7 +54,7 @@ class S2Conv(nn.Module):
         filter: ``"harmonic"``: the filter's SH coefficients are the parameters (I2S default);
             ``"spatial"``: the filter is a weighted sum of point masses on the HEALPix grid of
             ``kernel_level`` restricted to ``beta <= kernel_max_beta`` (global support by default).
-        init: ``"fan_in"`` or ``"unit"``, see the module docstring.
+        init: ``"unit"``, ``"fan_in"`` or ``"kaiming_uniform"``, see the module docstring.
     """
 
     def __init__(
@@ -74,16 +81,23 @@ class S2Conv(nn.Module):
         std = gain / math.sqrt(in_channels) if init == "fan_in" else 1.0
         self.scale = 1.0 if init == "fan_in" else 1 / math.sqrt(in_channels)
         if filter == "harmonic":
-            self.weight = nn.Parameter(torch.randn(in_channels, out_channels, n_s2_coeffs(lmax)) * std)
+            self.weight = nn.Parameter(self._draw(in_channels, out_channels, n_s2_coeffs(lmax), std))
         else:
             alpha, beta = s2_healpix_grid(kernel_level, max_beta=kernel_max_beta, dtype=torch.float64)
             Y = o3.spherical_harmonics_alpha_beta(list(range(lmax + 1)), alpha, beta, normalization="component")
             # point masses weighted by 1/sqrt(K): each filter coefficient has about the weights' variance
             self.register_buffer("kernel_Y", Y.float() / math.sqrt(len(alpha)), persistent=False)  # [K, (L+1)^2]
-            self.weight = nn.Parameter(torch.randn(in_channels, out_channels, len(alpha)) * std)
+            self.weight = nn.Parameter(self._draw(in_channels, out_channels, len(alpha), std))
         l_of, m_of, n_of = so3_layout(lmax)
         self.register_buffer("index_x", l_of**2 + m_of, persistent=False)  # [n_so3] -> S2 index of m
         self.register_buffer("index_psi", l_of**2 + n_of, persistent=False)  # [n_so3] -> S2 index of n
+
+    def _draw(self, f_in: int, f_out: int, n: int, std: float) -> torch.Tensor:
+        """Initial weights ``[f_in, f_out, n]``: ``kaiming_uniform_``'s draw under ``"kaiming_uniform"``,
+        else ``N(0, std^2)``."""
+        if self.init == "kaiming_uniform":
+            return nn.init.kaiming_uniform_(torch.empty(f_in, f_out, n))
+        return torch.randn(f_in, f_out, n) * std
 
     def filter(self) -> torch.Tensor:
         """The filter's S2 coefficients ``[f_in, f_out, (lmax+1)^2]``."""

@@ -16,6 +16,9 @@ Initialisation (``init``): ``"unit"`` (default) draws ``w ~ N(0, 1)`` with
 ``scale = 1 / sqrt(f_in * K)``, which keeps the mean square of its input. ``"fan_in"`` draws
 ``w ~ N(0, 2 / (f_in * K))`` and uses ``scale = 1``, like ``nn.Linear`` after a ReLU (Kaiming's
 gain 2: the layer follows the SO(3) ReLU, which halves a zero-mean signal's mean square).
+``"kaiming_uniform"`` is ``"unit"`` here: it names the original research code's combination, whose
+S2 convolution draws its filter with ``kaiming_uniform_`` (:mod:`image2sphere.nn.s2_conv`) while its
+SO(3) convolutions draw ``N(0, 1)`` parameters scaled by ``1 / sqrt(fan_in)`` in the forward pass.
 """
 
 from __future__ import annotations
@@ -30,6 +33,8 @@ from image2sphere.so3.wigner import check_lmax, flat_wigner, n_so3_coeffs, so3_b
 
 __all__ = ["SO3Conv"]
 
+INITS = ("fan_in", "kaiming_uniform", "unit")
+
 
 class SO3Conv(nn.Module):
     """SO(3) convolution ``[B, f_in, n_so3_coeffs] -> [B, f_out, n_so3_coeffs]``.
@@ -38,7 +43,8 @@ class SO3Conv(nn.Module):
         max_angle: support of the filter around the identity (radians; 22.5 deg in the paper).
         axis_level, n_angles: the kernel grid, see :func:`image2sphere.so3.so3_near_identity_grid`.
         kernel: optional explicit kernel rotations ``(K, 3, 3)`` instead of the near-identity grid.
-        init: ``"fan_in"`` or ``"unit"``, see the module docstring.
+        init: ``"unit"``, ``"fan_in"`` or ``"kaiming_uniform"`` (the same as ``"unit"`` here), see the
+            module docstring.
     """
 
     def __init__(
@@ -57,8 +63,8 @@ class SO3Conv(nn.Module):
         self.in_channels, self.out_channels = in_channels, out_channels
         if kernel is None:
             kernel = so3_near_identity_grid(max_angle, axis_level, n_angles, dtype=torch.float64)
-        if init not in ("fan_in", "unit"):
-            raise ValueError(f"init must be 'fan_in' or 'unit', got {init!r}")
+        if init not in INITS:
+            raise ValueError(f"init must be one of {INITS}, got {init!r}")
         self.init = init
         D = flat_wigner(lmax, kernel.to(torch.float64))  # [K, n_so3]
         self.register_buffer("kernel_D", D.float(), persistent=False)

@@ -361,3 +361,40 @@ def test_fourier_mlp_checkpoint_from_before_degree_power_predicts_as_it_was_trai
         as_trained = rebuilt.mlp(rebuilt.pooled_features(images))  # the coefficients the last layer gives
         assert torch.equal(rebuilt(images), as_trained)
         assert not torch.allclose(module.net(images), as_trained)  # today's default would predict otherwise
+
+
+def test_i2s_checkpoint_from_before_input_scaling_predicts_as_it_was_trained(tmp_path):
+    """An I2S checkpoint written before ``model.net.input_scaling`` existed fed its encoder the
+    ImageNet-normalised images: its stored config gets ``imagenet`` and the rebuilt network predicts
+    exactly what it did, where ``unit`` would predict otherwise. Quick: a 32 px network from the real
+    config, no training."""
+    from hydra import compose, initialize
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    from image2sphere.training.checkpoint import _upgrade_run_config, build_module, load_checkpoint
+
+    overrides = ["lmax=2", "dataset.image_size=32", "model.net.sphere_channels=8", "model.net.output_init=random"]
+    with initialize(version_base="1.3", config_path="../conf"):
+        cfg = compose(config_name="train", overrides=overrides)
+    model_cfg = OmegaConf.to_container(cfg.model, resolve=True)
+    assert model_cfg["net"]["input_scaling"] == "imagenet"  # today's default
+    torch.manual_seed(0)
+    module = instantiate(OmegaConf.create(model_cfg)).eval()
+    del model_cfg["net"]["input_scaling"]  # as a run of the earlier code stored it
+    path = tmp_path / "old.ckpt"
+    torch.save({"state_dict": module.state_dict(), "run_config": {"model": model_cfg}}, path)
+
+    loaded = load_checkpoint(path)
+    assert loaded["run_config"]["model"]["net"]["input_scaling"] == "imagenet"
+    rebuilt = build_module(loaded, path).net.eval()
+    assert rebuilt.input_scaling == "imagenet"
+    images = torch.randn(2, 3, 32, 32)
+    with torch.no_grad():
+        as_trained = module.net(images)
+        assert torch.equal(rebuilt(images), as_trained)
+        rebuilt.input_scaling = "unit"
+        assert not torch.allclose(rebuilt(images), as_trained)  # the other scaling would predict otherwise
+    stored = {"model": {"net": {"_target_": "image2sphere.nn.I2S", "input_scaling": "unit"}}}
+    _upgrade_run_config(stored, tmp_path / "stored.ckpt")
+    assert stored["model"]["net"]["input_scaling"] == "unit"  # a stored value is kept

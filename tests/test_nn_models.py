@@ -237,6 +237,45 @@ def test_model_bad_input(resnet18):
         model(torch.randn(1, 64, 64))
 
 
+@pytest.mark.parametrize("scaling", ["imagenet", "unit"])
+def test_input_scaling_gives_the_encoder_pixels_over_255_or_the_input_unchanged(scaling, resnet18):
+    """``input_scaling="unit"``: the encoder sees a real rendered uint8 image as ``pixels / 255``, though
+    the network gets it ImageNet-normalised as the loaders give it; ``"imagenet"``: the input itself."""
+    from image2sphere.data.common import normalize_images
+    from image2sphere.data.raycast import render
+    from image2sphere.nn.base import unscale_imagenet
+
+    pixels = render("cube", random_rotations(2, generator=torch.Generator().manual_seed(0)), image_size=64)
+    assert pixels.dtype == torch.uint8 and pixels.shape == (2, 64, 64, 3) and pixels.max() > 100
+    images = normalize_images(pixels)  # [2, 3, 64, 64], what the data loaders hand the network
+    unit = pixels.movedim(-1, -3).to(torch.float32) / 255
+    torch.testing.assert_close(unscale_imagenet(images), unit, atol=1e-6, rtol=0)
+
+    model = I2S(resnet18, image_size=64, lmax=2, sphere_channels=8, activation_resolution=4, input_scaling=scaling)
+    assert model.input_scaling == scaling
+    seen = []
+    hook = model.encoder.register_forward_pre_hook(lambda module, args: seen.append(args[0]))
+    try:
+        with torch.no_grad():
+            model(images)
+    finally:
+        hook.remove()
+    (got,) = seen
+    if scaling == "unit":
+        torch.testing.assert_close(got, unit, atol=1e-6, rtol=0)
+    else:
+        assert torch.equal(got, images)
+
+
+def test_input_scaling_is_refused_with_its_key(resnet18):
+    for value in ("pixels", None, 255):
+        with pytest.raises(ValueError, match=r"model\.net\.input_scaling must be one of \('imagenet', 'unit'\)"):
+            I2S(resnet18, image_size=64, lmax=2, sphere_channels=8, input_scaling=value)
+    model = I2S(resnet18, image_size=64, lmax=2, sphere_channels=8, activation_resolution=4, input_scaling="unit")
+    with pytest.raises(ValueError, match=r"images must have shape \(batch, 3, H, W\), got \(1, 64, 64\)"):
+        model(torch.randn(1, 64, 64))  # not broadcast against the channels' mean and std
+
+
 def _run(code: str) -> str:
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]

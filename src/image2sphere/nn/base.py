@@ -24,6 +24,14 @@ Conventions: mixed precision (:mod:`image2sphere.precision`)
   through ``features``, ``pooled_features`` or ``encode`` (a direct ``self.encoder(...)`` call would
   run the encoder in float32 too: correct, only slower).
 * Without autocast nothing changes: the wrappers call the methods as they are.
+
+Input scaling
+-------------
+The data pipeline hands every network ImageNet-normalised images, ``(pixels / 255 - mean) / std``
+(:func:`image2sphere.data.common.normalize_images`), what torchvision's pretrained weights expect.
+A network built with ``input_scaling="unit"`` maps them back to ``pixels / 255`` in ``[0, 1]`` (the
+original I2S research code's input) before its encoder sees them: :meth:`Float32Head.encode` applies
+:func:`unscale_imagenet` (the default ``"imagenet"`` passes the images on unchanged).
 """
 
 from __future__ import annotations
@@ -34,11 +42,36 @@ import torch
 from torch import nn
 
 from image2sphere.checks import check_int
+from image2sphere.data.common import IMAGENET_MEAN, IMAGENET_STD
 from image2sphere.distributions.base import PoseDistribution
 from image2sphere.distributions.fourier import SO3Distribution, fourier_grid_nll
 from image2sphere.precision import encoder_autocast, float32_methods, float32_region, to_float32
 
-__all__ = ["Float32Head", "PoseNetwork", "method_of"]
+__all__ = ["INPUT_SCALINGS", "Float32Head", "PoseNetwork", "check_input_scaling", "method_of", "unscale_imagenet"]
+
+#: ``model.net.input_scaling``: what the encoder sees (module docstring, "Input scaling")
+INPUT_SCALINGS = ("imagenet", "unit")
+
+
+def check_input_scaling(value) -> str:
+    """``value`` if it is one of :data:`INPUT_SCALINGS`, else ``ValueError`` naming the config key."""
+    if not isinstance(value, str) or value not in INPUT_SCALINGS:
+        raise ValueError(
+            f"model.net.input_scaling must be one of {INPUT_SCALINGS}, got {value!r}: 'imagenet' feeds the "
+            "encoder the ImageNet-normalised images as the data pipeline gives them, 'unit' maps them back to "
+            "pixels / 255 first (the original I2S code)"
+        )
+    return value
+
+
+def unscale_imagenet(images: torch.Tensor) -> torch.Tensor:
+    """ImageNet-normalised images ``[B, 3, H, W]`` -> ``pixels / 255`` in ``[0, 1]``: ``x * std + mean``,
+    the inverse of :func:`image2sphere.data.common.normalize_images`'s normalisation."""
+    if images.ndim != 4 or images.shape[1] != 3:
+        raise ValueError(f"images must have shape (batch, 3, H, W), got {tuple(images.shape)}")
+    mean = torch.tensor(IMAGENET_MEAN, dtype=images.dtype, device=images.device)[:, None, None]
+    std = torch.tensor(IMAGENET_STD, dtype=images.dtype, device=images.device)[:, None, None]
+    return images * std + mean
 
 
 class Float32Head(nn.Module):
@@ -53,6 +86,9 @@ class Float32Head(nn.Module):
     FLOAT32_METHODS: tuple[str, ...] = ("forward", "output_distribution", "loss")
 
     encoder: nn.Module
+    #: what the encoder sees, one of :data:`INPUT_SCALINGS` (module docstring); set by subclasses that
+    #: take it as an argument (:class:`PoseNetwork`)
+    input_scaling: str = "imagenet"
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -60,7 +96,10 @@ class Float32Head(nn.Module):
 
     def encode(self, images: torch.Tensor) -> torch.Tensor:
         """``self.encoder(images)``, the one part that follows an enclosing autocast; its output as
-        float32 when it ran under autocast (else unchanged)."""
+        float32 when it ran under autocast (else unchanged). With ``input_scaling="unit"`` the encoder
+        gets :func:`unscale_imagenet` of ``images`` ``[B, 3, H, W]`` (computed before the autocast)."""
+        if self.input_scaling == "unit":
+            images = unscale_imagenet(images)
         with encoder_autocast() as mixed:
             x = self.encoder(images)
         return to_float32(x) if mixed else x
@@ -74,11 +113,20 @@ class PoseNetwork(Float32Head):
             (:class:`~image2sphere.nn.ResNetEncoder`).
         image_size: the size of the images the network is built for.
         num_classes: > 0: the class one-hot is appended to the feature map as constant channels.
+        input_scaling: ``"imagenet"`` (the images as the data pipeline normalises them) or ``"unit"``
+            (mapped back to ``pixels / 255`` before the encoder); module docstring, "Input scaling".
     """
 
-    def __init__(self, encoder: nn.Module, image_size: int | tuple[int, int], num_classes: int = 0):
+    def __init__(
+        self,
+        encoder: nn.Module,
+        image_size: int | tuple[int, int],
+        num_classes: int = 0,
+        input_scaling: str = "imagenet",
+    ):
         super().__init__()
         check_int("num_classes", num_classes, 0)
+        self.input_scaling = check_input_scaling(input_scaling)
         self.encoder = encoder
         self.num_classes = num_classes
         self.image_size = image_size

@@ -34,8 +34,15 @@ class _FourierNetwork(PoseNetwork):
     """A network whose output is the Fourier coefficients of the log density's signal: trained as a
     classifier over the SO(3) grid (cross-entropy at the point nearest the label)."""
 
-    def __init__(self, encoder: nn.Module, image_size: int | tuple[int, int], lmax: int, num_classes: int):
-        super().__init__(encoder, image_size, num_classes)
+    def __init__(
+        self,
+        encoder: nn.Module,
+        image_size: int | tuple[int, int],
+        lmax: int,
+        num_classes: int,
+        input_scaling: str = "imagenet",
+    ):
+        super().__init__(encoder, image_size, num_classes, input_scaling)
         self.lmax = check_lmax(lmax)
 
     def output_distribution(self, output: torch.Tensor) -> SO3Distribution:
@@ -92,6 +99,9 @@ class I2S(_FourierNetwork):
             others (the original code), whose random logits start the loss above uniform, and whose
             first steps then go into shrinking that random output: at lmax 8 the loss stayed at
             uniform for 80 of the first epoch's 144 steps (docs/training_fidelity.md, "The band limit").
+        input_scaling: what the encoder sees: ``"imagenet"``, the ImageNet-normalised images the data
+            pipeline gives (what torchvision's pretrained weights expect), or ``"unit"``, those mapped
+            back to ``pixels / 255`` (the original code's input); see :mod:`image2sphere.nn.base`.
     """
 
     def __init__(
@@ -119,8 +129,9 @@ class I2S(_FourierNetwork):
         projector_normalization: str = "mean",
         so3_kernel: str = "local",
         output_init: str = "zero",
+        input_scaling: str = "imagenet",
     ):
-        super().__init__(encoder, image_size, lmax, num_classes)
+        super().__init__(encoder, image_size, lmax, num_classes, input_scaling)
         if output_init not in OUTPUT_INITS:
             raise ValueError(f"output_init must be one of {OUTPUT_INITS}, got {output_init!r}")
         if init not in INITS:

@@ -229,6 +229,9 @@ def _upgrade_run_config(run_config: dict, path: Path) -> None:
       outputs were the coefficients as they came (``0``); the default is now ``1``.
     * ``model.net.activation_resolution`` of I2S: absent, the ReLU's grid was 8 whatever lmax was; the
       default (``null``) is now ``lmax + 2``.
+    * ``model.net.input_scaling`` of I2S: absent, the encoder saw the ImageNet-normalised images
+      (``imagenet``, still the default; spelt out so that the meaning of an old run never follows a
+      later default).
 
     Keys renamed since (:data:`~image2sphere.training.run_config.RENAMED_KEYS`) get their new names:
     ``model.refine_mode`` is ``model.refine``.
@@ -248,6 +251,8 @@ def _upgrade_run_config(run_config: dict, path: Path) -> None:
     if "activation_resolution" not in net:
         net["activation_resolution"] = 8
         log.info("%s predates the ReLU grid's band-limit rule: using resolution 8, the grid it was trained with", path)
+    if "input_scaling" not in net:
+        net["input_scaling"] = "imagenet"
     if net.get("projector", "spatial") == "spatial" and "projector_normalization" not in net:
         net["projector_normalization"] = "sqrt"
         log.info("%s predates model.net.projector_normalization: using 'sqrt', the rule it was trained with", path)

@@ -186,7 +186,7 @@ def test_docs_resolution_table_is_what_the_configs_compose(tmp_path):
 
 
 FOURIER_MODELS = {"i2s", "i2s_harmonic_projector", "i2s_spatial_filter", "i2s_harmonic_projector_spatial_filter",
-                  "i2s_no_so3_conv", "i2s_two_so3_conv",
+                  "i2s_no_so3_conv", "i2s_two_so3_conv", "i2s_original",
                   "fourier_mlp"}  # fmt: skip
 POINT_REGRESSORS = {"regression_6d", "regression_9d", "spherical_regression", "bin_delta", "i2s_icosahedral"}
 
@@ -236,6 +236,62 @@ def test_model_list_is_every_method():
     assert set(options("model")) == FOURIER_MODELS | POINT_REGRESSORS | {
         "ipdf", "matrix_fisher", "rotation_laplace", "bingham", "von_mises", "viewpoint_bins"
     }  # fmt: skip
+
+
+ORIGINAL_CODE = {
+    "projector_normalization": "sqrt",
+    "n_subset": 20,
+    "init": "kaiming_uniform",
+    "so3_kernel": "tube",
+    "activation_resolution": 10,
+    "output_init": "random",
+    "input_scaling": "unit",
+}
+
+
+def _leaves(tree, prefix: str = "") -> dict:
+    """A nested config container as ``{"a.b.0.c": value}``."""
+    if isinstance(tree, dict):
+        return {k: v for key, sub in tree.items() for k, v in _leaves(sub, f"{prefix}{key}.").items()}
+    if isinstance(tree, list):
+        return {k: v for i, sub in enumerate(tree) for k, v in _leaves(sub, f"{prefix}{i}.").items()}
+    return {prefix[:-1]: tree}
+
+
+def test_i2s_original_is_i2s_with_the_original_codes_seven_choices(tmp_path):
+    """``model=i2s_original`` differs from ``model=i2s`` in exactly the original code's seven
+    ``model.net`` keys, and nowhere else but the model group's own choice in hydra's record; its
+    network runs on a batch of the built-in data's size."""
+    import torch
+
+    from image2sphere.nn import I2S
+    from image2sphere.so3 import n_so3_coeffs
+
+    leaves = {}
+    for model in ("i2s", "i2s_original"):
+        cfg = compose_cfg(tmp_path, [f"model={model}"])
+        hydra = _leaves(OmegaConf.to_container(cfg.hydra), "hydra.")
+        with open_dict(cfg):
+            del cfg.hydra
+        leaves[model] = {**_leaves(OmegaConf.to_container(cfg, resolve=True)), **hydra}
+    default, original = leaves["i2s"], leaves["i2s_original"]
+    differ = {k for k in default.keys() | original.keys() if default.get(k, "<absent>") != original.get(k, "<absent>")}
+    assert differ == {f"model.net.{k}" for k in ORIGINAL_CODE} | {
+        "hydra.runtime.choices.model", "hydra.overrides.task.0", "hydra.job.override_dirname"
+    }  # fmt: skip
+    assert {k: original[f"model.net.{k}"] for k in ORIGINAL_CODE} == ORIGINAL_CODE
+    assert original["hydra.runtime.choices.model"] == "i2s_original"
+    assert default["model.net.init"] == "unit" and default["model.net.input_scaling"] == "imagenet"
+
+    cfg = compose_cfg(tmp_path, ["model=i2s_original"])
+    assert cfg.dataset.image_size == 96 and cfg.lmax == 6
+    torch.manual_seed(0)
+    net = instantiate(cfg.model.net)
+    assert isinstance(net, I2S) and net.input_scaling == "unit" and net.s2_conv.init == "kaiming_uniform"
+    assert net.projector.normalization == "sqrt" and net.projector.n_subset == 20
+    with torch.no_grad():
+        out = net(torch.randn(2, 3, 96, 96))
+    assert out.shape == (2, n_so3_coeffs(6)) and torch.isfinite(out).all() and out.abs().max() > 0
 
 
 @pytest.mark.parametrize("encoder", options("encoder"))

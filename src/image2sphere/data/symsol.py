@@ -40,7 +40,7 @@ __all__ = ["LABEL_MODES", "SymsolDataModule", "SymsolDataset"]
 
 log = logging.getLogger(__name__)
 
-LABEL_MODES = ("random", "first")
+LABEL_MODES = ("random", "first", "all")
 
 
 def _shape_tuple(shapes: Sequence[str] | str, key: str) -> tuple[str, ...]:
@@ -60,8 +60,10 @@ class SymsolDataset(EpochDataset):
         split: ``"train"`` or ``"test"``.
         shapes: shape names; ``class_index`` is the position in this list.
         rows: per shape, the npz rows to use (default: all).
-        label: ``"random"`` (a uniformly chosen equivalent rotation, redrawn every epoch; I2S) or
-            ``"first"`` (the rendering rotation; IPDF). Only used when ``return_all`` is False.
+        label: ``"random"`` (a uniformly chosen equivalent rotation, redrawn every epoch; I2S),
+            ``"first"`` (the rendering rotation; IPDF) or ``"all"`` (every equivalent rotation with a
+            mask, as ``return_all``: the training loss is then its mean over them, the expectation of the
+            ``"random"`` label's loss without its sampling noise). Only used when ``return_all`` is False.
         return_all: return the full equivalent set with a mask (evaluation) instead of one label.
         image_size: images are resized to this square size when they differ.
         cache_images: decode every image once, up front in this process, and keep them in memory
@@ -147,7 +149,7 @@ class SymsolDataset(EpochDataset):
             "index": torch.tensor(row),
         }
         rotations, count = self.rotations[c][row], int(self.counts[c][row])
-        if self.return_all:
+        if self.return_all or self.label == "all":
             padded = rotations[:1].expand(self.max_m, 3, 3).clone()
             padded[:count] = rotations[:count]
             item["rotations"] = padded
@@ -175,7 +177,9 @@ class SymsolDataModule(PoseDataModule):
             carved from these.
         val_per_shape: training images per shape held out (chosen with ``seed``) for validation.
         test_per_shape: use only the first this many test images of each shape.
-        label: one training label per image, ``"random"`` equivalent or ``"first"``.
+        label: the training labels: one per image, a ``"random"`` equivalent (the paper) or the
+            ``"first"``; or ``"all"`` equivalents, whose mean loss is what ``"random"`` optimises in
+            expectation, without the noise of drawing one (docs/training_fidelity.md, "Every SYMSOL shape").
         image_size: network input size; images are resized when the files differ.
         batch_size, num_workers, pin_memory: loader settings (evaluation uses the same batch size);
             ``num_workers`` an integer or ``"auto"`` (see :class:`~image2sphere.data.datamodule.PoseDataModule`).

@@ -38,7 +38,7 @@ from image2sphere.so3.grid_eval import MAX_OUTPUT_BYTES, check_streamed_level, g
 from image2sphere.so3.rotations import matrix_to_angles, rotvec_to_matrix
 from image2sphere.so3.wigner import check_lmax, default_dtype, flat_wigner, n_so3_coeffs, so3_blocks, wigner_D
 
-__all__ = ["SO3Distribution", "fourier_grid_nll"]
+__all__ = ["SO3Distribution", "fourier_grid_nll", "fourier_grid_set_nll"]
 
 
 def fourier_grid_nll(coeffs: torch.Tensor, lmax: int, rotation: torch.Tensor, level: int) -> torch.Tensor:
@@ -49,6 +49,23 @@ def fourier_grid_nll(coeffs: torch.Tensor, lmax: int, rotation: torch.Tensor, le
     ev = get_grid_evaluator(lmax, check_streamed_level(level), coeffs.dtype, coeffs.device)
     index = so3_healpix_nearest_index(rotation.detach(), level).to(coeffs.device)  # [B]
     return ev.logsumexp(coeffs) - ev.logits_at(coeffs, index[:, None])[:, 0]
+
+
+def fourier_grid_set_nll(
+    coeffs: torch.Tensor, lmax: int, rotations: torch.Tensor, mask: torch.Tensor, level: int
+) -> torch.Tensor:
+    """:func:`fourier_grid_nll` averaged over each image's equivalent rotations ``(B,)``: ``rotations
+    (B, M, 3, 3)``, real where ``mask (B, M)``; ``logsumexp_i f(R_i) - mean_k f(R_k)`` with the grid
+    point nearest each ``R_k``. The normaliser is computed once per image, not once per rotation."""
+    B, M = mask.shape
+    ev = get_grid_evaluator(lmax, check_streamed_level(level), coeffs.dtype, coeffs.device)
+    real = mask.to(coeffs.device)
+    # padding entries may hold anything (NaN): read the image's first rotation there instead
+    filled = torch.where(mask[..., None, None], rotations, rotations[:, :1].expand_as(rotations))
+    index = so3_healpix_nearest_index(filled.detach().reshape(B * M, 3, 3), level).reshape(B, M).to(coeffs.device)
+    values = ev.logits_at(coeffs, index)  # [B, M]
+    mean = (values * real).sum(1) / real.sum(1)  # [B]
+    return ev.logsumexp(coeffs) - mean
 
 
 class SO3Distribution(PoseDistribution):

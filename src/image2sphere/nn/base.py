@@ -83,7 +83,7 @@ class Float32Head(nn.Module):
     """
 
     #: methods that run with autocast off and float16/bfloat16 tensor arguments cast to float32
-    FLOAT32_METHODS: tuple[str, ...] = ("forward", "output_distribution", "loss")
+    FLOAT32_METHODS: tuple[str, ...] = ("forward", "output_distribution", "loss", "set_loss")
 
     encoder: nn.Module
     #: what the encoder sees, one of :data:`INPUT_SCALINGS` (module docstring); set by subclasses that
@@ -168,9 +168,51 @@ class PoseNetwork(Float32Head):
         is the training grid (used by the methods trained on a grid)."""
         raise NotImplementedError
 
+    def set_loss(
+        self, output: torch.Tensor, rotations: torch.Tensor, mask: torch.Tensor, grid_level: int
+    ) -> torch.Tensor:
+        """The training loss per image ``(B,)`` averaged over each image's equivalent rotations
+        ``rotations (B, M, 3, 3)`` where ``mask (B, M)`` (``dataset.label=all``): exactly the expectation
+        of :meth:`loss` for one label drawn uniformly from the set, what ``dataset.label=random`` trains
+        on average. A method may compute it faster (I2S: one normaliser per image)."""
+        return mean_loss_over_set(self.loss, output, rotations, mask, grid_level)
+
     def distribution(self, images: torch.Tensor, class_index: torch.Tensor | None = None) -> PoseDistribution:
         """The predicted distribution over rotations for each image."""
         return self.output_distribution(self(images, class_index))
+
+
+def mean_loss_over_set(
+    loss: Callable[..., torch.Tensor],
+    output: torch.Tensor,
+    rotations: torch.Tensor,
+    mask: torch.Tensor,
+    grid_level: int,
+) -> torch.Tensor:
+    """``(B,)``: the mean of ``loss(output, rotation, grid_level)`` over the rotations of each image
+    (``rotations (B, M, 3, 3)``, real where ``mask (B, M)``, at least one per image), by evaluating
+    ``loss`` once per real rotation on its image's output (the rows of ``output`` repeated)."""
+    if mask.ndim != 2 or rotations.shape != (*mask.shape, 3, 3) or len(output) != len(mask):
+        raise ValueError(
+            f"rotations (B, M, 3, 3) and mask (B, M) must match the output's batch of {len(output)}, "
+            f"got {tuple(rotations.shape)} and {tuple(mask.shape)}"
+        )
+    counts = mask.sum(1)
+    if (counts == 0).any():
+        raise ValueError("every image needs at least one real rotation in mask")
+    image, k = mask.nonzero(as_tuple=True)  # [K], [K]
+    per_rotation = loss(output[image], rotations[image, k], grid_level)  # [K]
+    total = torch.zeros(len(mask), dtype=per_rotation.dtype, device=per_rotation.device)
+    return total.index_add(0, image.to(per_rotation.device), per_rotation) / counts.to(per_rotation)
+
+
+def set_loss_of(net: nn.Module, loss: Callable[..., torch.Tensor]) -> Callable[..., torch.Tensor]:
+    """The loss averaged over equivalent rotations for ``net`` (its :meth:`PoseNetwork.set_loss`, or
+    :func:`mean_loss_over_set` of ``loss`` for a bare network of Fourier coefficients)."""
+    own = getattr(net, "set_loss", None)
+    if callable(own):
+        return own
+    return lambda output, rotations, mask, grid_level: mean_loss_over_set(loss, output, rotations, mask, grid_level)
 
 
 def method_of(net: nn.Module) -> tuple[Callable[[torch.Tensor], PoseDistribution], Callable[..., torch.Tensor]]:

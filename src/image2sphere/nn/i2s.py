@@ -14,7 +14,7 @@ import math
 import torch
 from torch import nn
 
-from image2sphere.distributions.fourier import SO3Distribution, fourier_grid_nll
+from image2sphere.distributions.fourier import SO3Distribution, fourier_grid_nll, fourier_grid_set_nll
 from image2sphere.nn.activation import SO3ReLU
 from image2sphere.nn.base import PoseNetwork
 from image2sphere.nn.projector import HarmonicS2Projector, SpatialS2Projector
@@ -51,6 +51,12 @@ class _FourierNetwork(PoseNetwork):
     def loss(self, output: torch.Tensor, rotation: torch.Tensor, grid_level: int) -> torch.Tensor:
         """Cross-entropy ``(B,)`` against the grid point of ``grid_level`` nearest each label."""
         return fourier_grid_nll(output, self.lmax, rotation, grid_level)
+
+    def set_loss(
+        self, output: torch.Tensor, rotations: torch.Tensor, mask: torch.Tensor, grid_level: int
+    ) -> torch.Tensor:
+        """:meth:`loss` averaged over each image's equivalent rotations ``(B,)``, one normaliser per image."""
+        return fourier_grid_set_nll(output, self.lmax, rotations, mask, grid_level)
 
 
 class I2S(_FourierNetwork):

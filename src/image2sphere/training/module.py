@@ -54,7 +54,7 @@ from image2sphere.metrics import (
     summarize_pose_metrics,
     tie_break_uniforms,
 )
-from image2sphere.nn.base import method_of
+from image2sphere.nn.base import method_of, set_loss_of
 from image2sphere.precision import float32_region
 from image2sphere.recalibration import Recalibration, ScoredPairs, fit_temperature
 from image2sphere.so3.grid import (
@@ -133,6 +133,7 @@ class PoseEstimationModule(pl.LightningModule):
         self.net = net
         self.lmax = getattr(net, "lmax", None)
         self.output_distribution, self.method_loss = methods
+        self.method_set_loss = set_loss_of(net, self.method_loss)
         self.class_names = list(class_names) if class_names is not None else None
         self.test_metrics: dict[str, float] = {}
         self.skipped_images: dict[str, int] = {}
@@ -188,7 +189,12 @@ class PoseEstimationModule(pl.LightningModule):
         if not self._count_skipped(batch, "train"):
             return None
         output = self(batch["image"], batch.get("class_index"))
-        loss = self.method_loss(output, batch["rotation"], self.hparams.train_grid_level).mean()
+        level = self.hparams.train_grid_level
+        if "rotation" in batch:  # one label per image
+            loss = self.method_loss(output, batch["rotation"], level).mean()
+        else:  # every equivalent rotation (dataset.label=all): the loss averaged over them
+            mask = check_targets(batch["rotations"], batch.get("mask"), len(batch["image"]))
+            loss = self.method_set_loss(output, batch["rotations"], mask, level).mean()
         if not torch.isfinite(loss):
             raise NonFiniteLossError(
                 f"training loss is {loss.item()} at epoch {self.current_epoch}, batch {batch_idx} "

@@ -107,6 +107,28 @@ def test_dataset_items_and_label_in_equivalent_set(symsol_root):
     torch.testing.assert_close(item["image"], normalize_images(torch.from_numpy(png)))
 
 
+def test_label_all_gives_training_items_their_full_equivalent_set(symsol_root):
+    """dataset.label=all: training items carry every equivalent rotation with a mask (as evaluation
+    items do) and no single label, the same for every epoch; the data module's training batches too."""
+    ds = SymsolDataset(symsol_root, "train", ["cube", "tetX"], label="all", image_size=SIZE)
+    raw = np.load(symsol_root / "train" / "rotations.npz")
+    item = ds[14]  # tetX row 4: M = 3
+    assert "rotation" not in item and item["mask"].sum() == 3 and item["mask"][:3].all()
+    np.testing.assert_array_equal(item["rotations"][:3].numpy(), raw["tetX"][4, :3])
+    ds.set_epoch(5)
+    np.testing.assert_array_equal(ds[14]["rotations"].numpy(), item["rotations"].numpy())
+    assert ds[2]["mask"].all() and ds[2]["rotations"].shape == (24, 3, 3)  # cube: 24 of 24
+    dm = SymsolDataModule(
+        root=str(symsol_root), shapes=["cube", "tetX"], val_per_shape=2, image_size=8, batch_size=4,
+        label="all", cache_images=True,
+    )  # fmt: skip
+    dm.setup("fit")
+    batch = next(iter(dm.train_dataloader()))
+    assert batch["rotations"].shape == (4, 24, 3, 3) and batch["mask"].shape == (4, 24)
+    with pytest.raises(ValueError, match="dataset.label must be one of"):
+        SymsolDataModule(root=str(symsol_root), shapes=["cube"], label="every")
+
+
 def test_eval_items_hold_full_set_with_mask(symsol_root):
     ds = SymsolDataset(symsol_root, "test", ["tetX", "cube"], return_all=True, image_size=SIZE)
     raw = np.load(symsol_root / "test" / "rotations.npz")

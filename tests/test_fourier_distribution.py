@@ -12,6 +12,7 @@ from image2sphere.distributions import LOG_UNIFORM_DENSITY, SO3Distribution
 from image2sphere.so3 import (
     flat_wigner,
     geodesic_distance,
+    n_so3_coeffs,
     so3_healpix_grid,
     so3_healpix_index_to_matrix,
     so3_healpix_nearest_index,
@@ -268,3 +269,32 @@ def test_refinement_works_under_inference_mode():
         inside = SO3Distribution(dist.coeffs.clone(), 4).mode(2, refine=True, steps=30)
     torch.testing.assert_close(inside, plain)
     assert geodesic_distance(plain, target).item() < geodesic_distance(dist.mode(2), target).item()
+
+
+def test_set_loss_averages_the_dense_cross_entropy_over_the_equivalent_rotations():
+    """I2S's loss for dataset.label=all, against the dense grid softmax: ``logsumexp - mean_k f(R_k)``
+    over each image's real rotations (NaN padding ignored); the same as the generic per-rotation mean,
+    and the one-label loss when the set has one rotation."""
+    from image2sphere.distributions.fourier import fourier_grid_nll, fourier_grid_set_nll
+    from image2sphere.nn.base import mean_loss_over_set
+
+    lmax, level = 3, 2
+    torch.manual_seed(0)
+    coeffs = torch.randn(3, n_so3_coeffs(lmax), dtype=torch.float64)
+    R = haar_rotations(15, seed=4).reshape(3, 5, 3, 3)
+    mask = torch.tensor([[1, 1, 1, 0, 0], [1, 0, 0, 0, 0], [1, 1, 1, 1, 1]], dtype=torch.bool)
+    R = R.masked_fill(~mask[..., None, None], float("nan"))
+    got = fourier_grid_set_nll(coeffs, lmax, R, mask, level)
+    logits = reference_dense_grid_logits(coeffs, lmax, level)  # [B, N]
+    lse = torch.logsumexp(logits, dim=1)
+    grid = so3_healpix_index_to_matrix(torch.arange(logits.shape[1]), level, dtype=torch.float64)
+    for b in range(3):
+        index = brute_force_nearest(R[b][mask[b]], grid)
+        assert got[b].item() == pytest.approx((lse[b] - logits[b, index].mean()).item(), rel=1e-10)
+    generic = mean_loss_over_set(lambda o, r, lv: fourier_grid_nll(o, lmax, r, lv), coeffs, R, mask, level)
+    torch.testing.assert_close(got, generic, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(got[1], fourier_grid_nll(coeffs[1:2], lmax, R[1, :1], level)[0])
+    with pytest.raises(ValueError, match="at least one real rotation"):
+        mean_loss_over_set(lambda o, r, lv: r.sum((1, 2)), coeffs, R, torch.zeros_like(mask), level)
+    with pytest.raises(ValueError, match="must match"):
+        mean_loss_over_set(lambda o, r, lv: r.sum((1, 2)), coeffs[:2], R, mask, level)

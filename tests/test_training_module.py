@@ -49,6 +49,30 @@ def _eval_batch(B: int = 4, M: int = 3) -> dict:
 
 
 @pytest.mark.filterwarnings("ignore:You are trying to .self.log")
+def test_set_loss_is_the_dense_cross_entropy_averaged_over_the_equivalent_rotations():
+    """dataset.label=all: a batch with every equivalent rotation (NaN padding) trains on the dense
+    cross-entropy averaged over them, for I2S's own set loss and for the generic one of a bare network;
+    it is the mean of the one-label losses, so the random label's loss equals it in expectation."""
+    module = _module()
+    batch = _eval_batch()
+    batch["rotations"] = batch["rotations"].masked_fill(~batch["mask"][..., None, None], float("nan"))
+    loss = module.training_step(batch, 0)
+    logits = dense_grid_logits(module(batch["image"]).double(), LMAX, 2)  # [B, N]
+    per_image = []
+    for b in range(4):
+        real = batch["rotations"][b][batch["mask"][b]]  # [m, 3, 3]
+        target = so3_healpix_nearest_index(real, 2)
+        per_image.append(nn.functional.cross_entropy(logits[b].expand(len(real), -1), target))
+    assert loss.item() == pytest.approx(torch.stack(per_image).mean().item(), rel=1e-4)
+    loss.backward()
+    assert module.net.linear.weight.grad.abs().sum() > 0
+    first_label = module.training_step({"image": batch["image"], "rotation": batch["rotations"][:, 0]}, 0)
+    assert first_label.item() != pytest.approx(loss.item(), rel=1e-3)  # not the rendering rotation's loss
+    with pytest.raises(ValueError, match="mask"):
+        module.training_step(batch | {"mask": torch.zeros(4, 3, dtype=torch.bool)}, 0)
+
+
+@pytest.mark.filterwarnings("ignore:You are trying to .self.log")
 def test_training_loss_is_dense_cross_entropy_at_nearest_grid_point():
     module = _module()
     batch = {"image": torch.randn(4, 3, 8, 8), "rotation": haar_rotations(4, seed=1, dtype=torch.float32)}

@@ -12,6 +12,9 @@ learning the pose. The default now projects on all points in training, as at tes
   test-time one; the paper's 20-point subset's noise grows with the degree past the signal.
 * quick: why the cube stays uniform at lmax 2 in the fidelity matrix: a density invariant under the
   cube's 24 rotations has no Fourier component of degree 1, 2, 3 or 5 (the cubic harmonics).
+* quick: why the icosahedron waits longest at uniform with one random equivalent label: only degree 6
+  is invariant under its 60 rotations below degree 7, and 2.9 % of a label's gradient survives the
+  average over the equivalent set (4.8 % for the cube, 9.3 % for the tetrahedron).
 * slow: a short seeded training run at lmax 8 and at lmax 10 brings the training loss well below
   uniform's; with the 20-point subset (the code before the fix) it stays at uniform.
 * slow: the Fourier MLP ("Fourier basis with MLP") learns once every degree takes an equal share of
@@ -95,6 +98,41 @@ def test_cube_symmetric_densities_have_no_degree_1_2_3_or_5():
         averaged[block] = (Dg @ c.T).mean(0).T.flatten()  # rows of c projected onto the invariant subspace
     norms = [float(averaged[block].norm()) for _, block in so3_blocks(10)]
     assert all((n > 1e-6) == bool(e) for n, e in zip(norms, expected, strict=True)), norms
+
+
+def _trivial_multiplicities(G: torch.Tensor, lmax: int) -> list[float]:
+    """Per degree l, (1/|G|) sum_g trace D^l(g): how many independent G-invariant rows D^l has."""
+    D = flat_wigner(lmax, G.to(torch.float64))  # [|G|, n_so3], each block sqrt(2l+1) D^l
+    out = []
+    for l, block in so3_blocks(lmax):
+        d = 2 * l + 1
+        out.append(float((D[:, block].unflatten(-1, (d, d)).diagonal(dim1=-2, dim2=-1).sum(-1) / math.sqrt(d)).mean()))
+    return out
+
+
+@pytest.mark.parametrize(
+    ("shape", "expected", "share"),
+    [
+        ("icosa", [1, 0, 0, 0, 0, 0, 1], 13 / 454),  # the icosahedral group: nothing between 0 and 6
+        ("cube", [1, 0, 0, 0, 1, 0, 1], (9 + 13) / 454),
+        ("tet", [1, 0, 0, 1, 1, 0, 2], (7 + 9 + 26) / 454),
+    ],
+)
+def test_a_random_equivalent_label_is_mostly_noise_for_the_icosahedron(shape, expected, share):
+    """Why the icosahedron waits longest at uniform with one random equivalent label per image
+    (docs/training_fidelity.md, "Every SYMSOL shape"). At the uniform start the loss's gradient with
+    respect to the output's coefficients is the label's flat Wigner vector; averaged over the image's
+    equivalent set it keeps only the group-invariant rows (the multiplicities above, per degree), the
+    rest is zero-mean noise from the draw. The share of its energy that survives, sum_l (2l+1) n_l /
+    sum_l (2l+1)^2 over l = 1..6, is 2.9 % for the icosahedron (degree 6 alone), 4.8 % for the cube and
+    9.3 % for the tetrahedron; the loss averaged over the set (dataset.label=all) has none of the noise."""
+    G = symmetry_group(shape).to(torch.float64)
+    assert _trivial_multiplicities(G, 6) == pytest.approx(expected, abs=1e-9)
+    R = random_rotations(1, generator=torch.Generator().manual_seed(3), dtype=torch.float64)[0]
+    labels = flat_wigner(6, R @ G)[:, 1:]  # [|G|, n_so3 - 1]: one label's gradient, degree 0 dropped
+    signal = labels.mean(0)  # what every draw shares
+    measured = float(signal.pow(2).sum() / labels.pow(2).sum(1).mean())
+    assert measured == pytest.approx(share, rel=1e-9)
 
 
 # ------------------------------------------------------------------ short training runs

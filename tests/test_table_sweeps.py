@@ -145,22 +145,34 @@ def _flat(cfg: dict, prefix: str = "") -> dict[str, object]:
 
 
 def test_small_sweeps_train_every_setting_on_the_built_in_data_with_one_change_each():
-    """table=small/table7 and small/ablations: on the built-in data, 2 epochs, level-4 test grid; Table 7's
-    band limits, and every other setting one change from the default (the lmax 6 run of small/table7)."""
-    default = composed_run("small/table7", ["lmax=6"], 0)
-    base = _flat(default.config)
-    assert default.choices["dataset"] == "symsol_rendered" and default.choices["model"] == "i2s"
-    assert (base["trainer.max_epochs"], base["eval_grid_level"], base["lmax"]) == (2, 4, 6)
-    assert table_jobs("small/table7") == [[f"lmax={L}"] for L in (2, 4, 6, 8, 10)]
-    changed = {}
+    """table=small/table7 and small/ablations: on the built-in data, 2 epochs, level-4 test grid, each
+    setting over seeds 0, 1 and 2; Table 7's band limits, and every other setting one change from the
+    default of the same seed (the lmax 6 run of small/table7)."""
+    seeds = (0, 1, 2)
+    bases, default = {}, None
+    for seed in seeds:
+        default = composed_run("small/table7", [f"seed={seed}", "lmax=6"], 0)
+        bases[seed] = _flat(default.config)
+        assert default.choices["dataset"] == "symsol_rendered" and default.choices["model"] == "i2s"
+        assert (bases[seed]["trainer.max_epochs"], bases[seed]["eval_grid_level"], bases[seed]["lmax"]) == (2, 4, 6)
+        assert bases[seed]["seed"] == seed
+    assert table_jobs("small/table7") == [[f"seed={s}", f"lmax={L}"] for s in seeds for L in (2, 4, 6, 8, 10)]
+    changed: dict[str, list] = {}
     for i, job in enumerate(table_jobs("small/ablations")):
         run = composed_run("small/ablations", job, i)
         assert run.choices["dataset"] == "symsol_rendered", job
         flat = _flat(run.config)
+        base = bases[flat["seed"]]
         assert (flat["trainer.max_epochs"], flat["eval_grid_level"]) == (2, 4), job
         differs = {k for k in set(base) | set(flat) if k not in ("task_name", "tags") and base.get(k) != flat.get(k)}
         groups = {g for g in ("model", "encoder") if run.choices[g] != default.choices[g]}
-        changed[" ".join(job)] = (groups, differs)
+        setting = " ".join(o for o in job if not o.startswith("seed="))
+        changed.setdefault(setting, []).append((flat["seed"], groups, differs))
+    assert all(sorted(s for s, _, _ in runs) == list(seeds) for runs in changed.values()), changed
+    changed = {k: {(frozenset(g), frozenset(d)) for _, g, d in runs} for k, runs in changed.items()}
+    for runs in changed.values():
+        assert len(runs) == 1, runs  # the same change at every seed
+    changed = {k: next(iter(runs)) for k, runs in changed.items()}
     # a mapping or a number of SO(3) convolutions: another model file, nothing else
     for model in ("i2s_spatial_filter", "i2s_harmonic_projector_spatial_filter", "i2s_harmonic_projector",
                   "fourier_mlp", "i2s_icosahedral", "i2s_no_so3_conv", "i2s_two_so3_conv"):  # fmt: skip
@@ -173,3 +185,28 @@ def test_small_sweeps_train_every_setting_on_the_built_in_data_with_one_change_e
         assert not groups and differs == {"train_grid_level"}, differs
     assert changed.pop("model.net.n_subset=20 lmax=8") == (set(), {"model.net.n_subset", "lmax"})
     assert not changed, changed
+
+
+def test_small_symsol_trains_symsol_one_once_and_each_symsol_two_shape_alone(tmp_path):
+    """table=small/symsol: on the renderer, 8 epochs (x0.1 after 6), level-4 test grid; SYMSOL I's five
+    shapes in one model and each SYMSOL II shape in its own, each with one random label and with every
+    equivalent label, over seeds 0, 1 and 2; and the datamodule each job builds trains on those shapes."""
+    from image2sphere.data.symsol import SymsolDataModule
+
+    jobs = table_jobs("small/symsol")
+    assert len(jobs) == 3 * 2 * (1 + 3)
+    seen = set()
+    for i, job in enumerate(jobs):
+        run = composed_run("small/symsol", job, i)
+        flat = _flat(run.config)
+        assert run.choices["dataset"] == "symsol_rendered" and run.choices["model"] == "i2s", job
+        assert (flat["trainer.max_epochs"], flat["model.scheduler.step_size"], flat["eval_grid_level"]) == (8, 6, 4)
+        shapes, shape = run.config["dataset"]["shapes"], flat["dataset.shape"]
+        assert (shapes is None) != (shape is None), job  # SymsolDataModule takes one of the two
+        dm = SymsolDataModule(
+            root=None, render={"train": 1, "test": 1}, render_dir=str(tmp_path), shapes=shapes, shape=shape,
+            label=flat["dataset.label"],
+        )  # fmt: skip
+        seen.add((flat["seed"], flat["dataset.label"], dm.shapes))
+    shapes = [("tet", "cube", "icosa", "cone", "cyl"), ("tetX",), ("cylO",), ("sphereX",)]
+    assert seen == {(s, label, sh) for s in (0, 1, 2) for label in ("random", "all") for sh in shapes}

@@ -173,6 +173,30 @@ def test_symsol_columns_come_from_their_own_runs_and_the_average_needs_all_three
     assert lines[("Murphy et al. 2021 (IPDF, full)", "ours")] == ["—"] * 10
 
 
+def test_small_symsol_layout_separates_the_one_model_of_symsol_one_from_each_shapes_own(tmp_path):
+    """--table small_symsol: a run on the five shapes fills SYMSOL I (its overall and per-shape log
+    likelihood), a run of one shape fills that shape's SYMSOL II column and never SYMSOL I's average;
+    the rows follow dataset.label and the model, with mean +- std over seeds."""
+    shapes1 = {"cone": 1.0, "cyl": 2.0, "tet": 3.0, "cube": 4.0, "icosa": 5.0}
+    for seed, shift in ((0, 0.0), (1, 1.0)):
+        ll = {"log_likelihood": 3.0 + shift, **{f"log_likelihood/{k}": v + shift for k, v in shapes1.items()}}
+        make_run(tmp_path, f"s1_{seed}", {"model": "i2s", "dataset": "symsol_rendered"},
+                 {"seed": seed, "dataset": {"shape": None, "label": "random"}}, ll)  # fmt: skip
+    for shape, value in (("sphereX", 1.0), ("cylO", 2.0), ("tetX", 6.0)):
+        make_run(tmp_path, shape, {"model": "i2s", "dataset": "symsol_rendered"},
+                 {"dataset": {"shape": shape, "label": "random"}}, {"log_likelihood": value})  # fmt: skip
+    make_run(tmp_path, "all_tetX", {"model": "i2s", "dataset": "symsol_rendered"},
+             {"dataset": {"shape": "tetX", "label": "all"}}, {"log_likelihood": 7.0})  # fmt: skip
+    filled = build_table("small_symsol", LAYOUTS["small_symsol"], find_runs([tmp_path])[0])
+    lines = table_lines(to_markdown(filled))
+    random_row = [k for k in lines if k[0].startswith("I2S, one random") and k[1].startswith("ours")][0]
+    all_row = [k for k in lines if k[0].startswith("I2S, the loss averaged") and k[1].startswith("ours")][0]
+    assert lines[random_row][:6] == ["3.50 ± 0.71", "1.50 ± 0.71", "2.50 ± 0.71", "3.50 ± 0.71", "4.50 ± 0.71",
+                                     "5.50 ± 0.71"]  # fmt: skip
+    assert lines[random_row][6:] == ["3.00", "1.00", "2.00", "6.00"]
+    assert lines[all_row] == ["—"] * 9 + ["7.00"]
+
+
 def test_a_point_estimate_reads_na_not_missing(tmp_path):
     make_run(tmp_path, "r", {"model": "regression_6d", "dataset": "symsol1"}, {"dataset": {"num_views": None}},
              {"acc15": 0.1, "acc30": 0.2, "median_error_deg": 50.0})  # fmt: skip

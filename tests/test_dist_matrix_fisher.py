@@ -306,3 +306,39 @@ def test_bad_parameters_raise(family):
         cls(torch.zeros(1, 3, 3)).exact_sample(0)
     with pytest.raises(ValueError, match=r"\(B=2, K, 3, 3\)"):
         cls(torch.zeros(2, 3, 3)).unnormalized_log_density(torch.zeros(3, 5, 3, 3))
+
+
+def test_generic_set_loss_of_a_pose_network_is_its_loss_averaged_over_each_set():
+    """dataset.label=all for a method without a set loss of its own (the matrix Fisher network): the
+    loss once per real equivalent rotation of each image, averaged; padding (NaN) never read."""
+    from torch import nn
+
+    from image2sphere.nn.heads import MatrixFisherNet
+
+    class Encoder(nn.Module):
+        out_channels = 4
+
+        def __init__(self):
+            super().__init__()
+            self.conv = nn.Conv2d(3, 4, 3, stride=2, padding=1)
+
+        def forward(self, images):
+            return self.conv(images)
+
+        def feature_size(self, image_size):
+            return image_size // 2, image_size // 2
+
+    torch.manual_seed(0)
+    net = MatrixFisherNet(Encoder(), image_size=8, hidden=8).double()
+    output = net(torch.randn(3, 3, 8, 8, dtype=torch.float64))
+    R = haar_rotations(12, seed=2).reshape(3, 4, 3, 3)
+    mask = torch.tensor([[1, 1, 0, 0], [1, 1, 1, 1], [1, 0, 0, 0]], dtype=torch.bool)
+    R = R.masked_fill(~mask[..., None, None], float("nan"))
+    got = net.set_loss(output, R, mask, 3)
+    for b in range(3):
+        k = int(mask[b].sum())
+        expected = net.loss(output[b : b + 1].expand(k, -1), R[b, :k], 3).mean()
+        assert got[b].item() == pytest.approx(expected.item(), rel=1e-12)
+    assert torch.isfinite(got).all()
+    got.sum().backward()  # differentiable through the repeated rows
+    assert all(p.grad is not None for p in net.parameters() if p.requires_grad)

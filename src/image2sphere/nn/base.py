@@ -191,7 +191,9 @@ def mean_loss_over_set(
 ) -> torch.Tensor:
     """``(B,)``: the mean of ``loss(output, rotation, grid_level)`` over the rotations of each image
     (``rotations (B, M, 3, 3)``, real where ``mask (B, M)``, at least one per image), by evaluating
-    ``loss`` once per real rotation on its image's output (the rows of ``output`` repeated)."""
+    ``loss`` once per real rotation on its image's output (the rows of ``output`` repeated), a batch of
+    ``B`` rows at a time: as much memory as one ordinary step, and ``K / B`` times its loss's time for
+    ``K`` real rotations (a cone's 360 or a cylinder's 720 per image make it that much slower)."""
     if mask.ndim != 2 or rotations.shape != (*mask.shape, 3, 3) or len(output) != len(mask):
         raise ValueError(
             f"rotations (B, M, 3, 3) and mask (B, M) must match the output's batch of {len(output)}, "
@@ -201,7 +203,11 @@ def mean_loss_over_set(
     if (counts == 0).any():
         raise ValueError("every image needs at least one real rotation in mask")
     image, k = mask.nonzero(as_tuple=True)  # [K], [K]
-    per_rotation = loss(output[image], rotations[image, k], grid_level)  # [K]
+    # in pieces of one batch each: the memory of one ordinary step, the time of K / B of them
+    size = len(mask)
+    per_rotation = torch.cat(
+        [loss(output[i], rotations[i, j], grid_level) for i, j in zip(image.split(size), k.split(size), strict=True)]
+    )  # [K]
     total = torch.zeros(len(mask), dtype=per_rotation.dtype, device=per_rotation.device)
     return total.index_add(0, image.to(per_rotation.device), per_rotation) / counts.to(per_rotation)
 

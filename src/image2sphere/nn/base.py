@@ -83,7 +83,7 @@ class Float32Head(nn.Module):
     """
 
     #: methods that run with autocast off and float16/bfloat16 tensor arguments cast to float32
-    FLOAT32_METHODS: tuple[str, ...] = ("forward", "output_distribution", "loss", "set_loss")
+    FLOAT32_METHODS: tuple[str, ...] = ("forward", "output_distribution", "loss")
 
     encoder: nn.Module
     #: what the encoder sees, one of :data:`INPUT_SCALINGS` (module docstring); set by subclasses that
@@ -116,6 +116,8 @@ class PoseNetwork(Float32Head):
         input_scaling: ``"imagenet"`` (the images as the data pipeline normalises them) or ``"unit"``
             (mapped back to ``pixels / 255`` before the encoder); module docstring, "Input scaling".
     """
+
+    FLOAT32_METHODS = (*Float32Head.FLOAT32_METHODS, "set_loss")
 
     def __init__(
         self,

@@ -60,8 +60,9 @@ def fourier_grid_set_nll(
     B, M = mask.shape
     ev = get_grid_evaluator(lmax, check_streamed_level(level), coeffs.dtype, coeffs.device)
     real = mask.to(coeffs.device)
-    # padding entries may hold anything (NaN): read the image's first rotation there instead
-    filled = torch.where(mask[..., None, None], rotations, rotations[:, :1].expand_as(rotations))
+    from image2sphere.metrics import fill_padding  # here: metrics imports this package
+
+    filled = fill_padding(rotations, mask)  # padding (possibly NaN) read as the image's first rotation
     index = so3_healpix_nearest_index(filled.detach().reshape(B * M, 3, 3), level).reshape(B, M).to(coeffs.device)
     values = ev.logits_at(coeffs, index)  # [B, M]
     mean = (values * real).sum(1) / real.sum(1)  # [B]

@@ -558,3 +558,19 @@ def test_module_and_stored_configs_take_the_old_refine_name(caplog):
     stored = {"model": {"refine_mode": True, "net": {"_target_": "image2sphere.nn.RotationRegression"}}}
     _upgrade_run_config(stored, Path("old.ckpt"))
     assert stored["model"]["refine"] is True and "refine_mode" not in stored["model"]
+
+
+def test_run_ids_of_one_process_in_the_same_second_differ_and_each_run_keeps_its_own(monkeypatch):
+    """Quick. ``${run_id:<timestamp>}`` names the default run directory. A process that starts several runs in
+    one second (a notebook, the in-process entry point of the tests) gets a new name for each, while one run's
+    config keeps the name it was given however often it is resolved."""
+    import os
+
+    for var in ("SLURM_JOB_ID", "SLURM_ARRAY_JOB_ID", "SLURM_ARRAY_TASK_ID"):
+        monkeypatch.delenv(var, raising=False)
+    register_resolvers()
+    stamp = "2000-01-01_00-00-00"  # a second no other test names
+    first, second = (OmegaConf.create({"dir": f"runs/${{run_id:{stamp}}}"}) for _ in range(2))
+    names = [first.dir, first.dir, second.dir, second.dir]
+    assert names[0] == names[1] == f"runs/{stamp}_{os.getpid()}"
+    assert names[2] == names[3] == f"runs/{stamp}_{os.getpid()}_2"

@@ -63,6 +63,26 @@ def test_eval_scores_every_test_image_and_reproduces_the_training_metrics(traine
     assert proc.returncode != 0 and (out / "metrics.json").read_bytes() == before
 
 
+def test_eval_recomputes_batchnorm_statistics_as_training_did(trained, tmp_path):
+    """``batchnorm_statistics=recompute`` recomputes the statistics from the checkpoint's weights over its
+    last epoch's first batches, as ``callbacks.batchnorm_statistics`` (on in the tiny run) did at the end of
+    training: the metrics are the training run's. Over one batch instead of the epoch's the statistics,
+    and so the metrics, differ; the checkpoint is not changed."""
+    ckpt, run, _ = trained
+    before = ckpt.read_bytes()
+    common = [f"ckpt_path={ckpt}", "eval_grid_level=3", "plots=0", "logger=none", "batchnorm_statistics=recompute"]
+    _run("src.eval", [*common, f"hydra.run.dir={tmp_path / 'all'}"])
+    _run("src.eval", [*common, "batchnorm_batches=1", f"hydra.run.dir={tmp_path / 'one'}"])
+    every, one, trained_metrics = read_metrics(tmp_path / "all"), read_metrics(tmp_path / "one"), read_metrics(run)
+    for key in ("log_likelihood", "spread_deg", "median_error_deg"):
+        assert every[key] == pytest.approx(trained_metrics[key], rel=1e-5, abs=1e-6), key
+    assert abs(one["log_likelihood"] - every["log_likelihood"]) > 1e-4
+    assert ckpt.read_bytes() == before
+    bad = [*common[:-1], "batchnorm_statistics=yes", f"hydra.run.dir={tmp_path / 'bad'}"]
+    proc = _run("src.eval", bad, check=False)
+    assert proc.returncode != 0 and "batchnorm_statistics" in proc.stderr
+
+
 def test_eval_with_refinement_changes_only_the_point_estimate(trained, tmp_path):
     ckpt, run, _ = trained
     out = tmp_path / "refined"

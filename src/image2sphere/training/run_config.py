@@ -157,6 +157,8 @@ def check_eval_config(cfg: DictConfig) -> None:
     if not isinstance(cfg.get("refine"), bool):
         raise ValueError(f"refine must be true or false, got {cfg.get('refine')!r}")
     check_choice(cfg, "recalibration", ("auto", "fit", "off"), default="auto")
+    check_choice(cfg, "batchnorm_statistics", ("stored", "recompute"), default="stored")
+    _int_at_least(cfg, "batchnorm_batches", 1, allow_null=True)
 
 
 def check_predict_config(cfg: DictConfig) -> None:

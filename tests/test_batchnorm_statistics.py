@@ -1,0 +1,142 @@
+"""``callbacks.batchnorm_statistics``: BatchNorm's running statistics recomputed from the current weights.
+
+Quick tier: a tiny matrix Fisher network whose encoder has one BatchNorm layer, trained in this process
+on 40 random images (5 batches of 8 per epoch).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import lightning.pytorch as pl
+import pytest
+import torch
+from torch import nn
+from torch.utils.data import DataLoader
+
+from conftest import haar_rotations
+from image2sphere.data.loading import EpochShuffleSampler
+from image2sphere.nn import MatrixFisherNet
+from image2sphere.training import PoseEstimationModule
+from image2sphere.training.callbacks import BatchNormStatistics
+
+IMAGE_SIZE, N_IMAGES, BATCH = 16, 40, 8
+
+
+class BNEncoder(nn.Module):
+    out_channels = 4
+
+    def __init__(self):
+        super().__init__()
+        self.conv = nn.Conv2d(3, self.out_channels, 3, stride=2, padding=1)
+        self.norm = nn.BatchNorm2d(self.out_channels)
+
+    def feature_size(self, image_size):
+        return (math.ceil(image_size / 2),) * 2
+
+    def forward(self, images):
+        return torch.relu(self.norm(self.conv(images)))
+
+
+def _items() -> list[dict]:
+    g = torch.Generator().manual_seed(0)
+    # the images' mean and spread differ from BatchNorm's start (0, 1), so the statistics move
+    images = 3.0 + 2.0 * torch.randn(N_IMAGES, 3, IMAGE_SIZE, IMAGE_SIZE, generator=g)
+    rotations = haar_rotations(N_IMAGES, seed=1, dtype=torch.float32)
+    return [{"image": images[i], "rotation": rotations[i], "index": i} for i in range(N_IMAGES)]
+
+
+def _eval_items() -> list[dict]:
+    return [
+        {
+            "image": it["image"],
+            "rotations": it["rotation"][None],
+            "mask": torch.ones(1, dtype=torch.bool),
+            "index": it["index"],
+            "class_index": 0,
+        }
+        for it in _items()[:8]
+    ]
+
+
+class _Record(pl.Callback):
+    """The images of each training batch by epoch, the loss of each step, and whether every module is in
+    evaluation mode during validation."""
+
+    def __init__(self):
+        self.batches: dict[int, list[torch.Tensor]] = {}
+        self.losses: list[float] = []
+        self.eval_mode_in_validation: list[bool] = []
+
+    def on_train_batch_start(self, trainer, module, batch, batch_idx):
+        self.batches.setdefault(trainer.current_epoch, []).append(batch["image"].clone())
+
+    def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx):
+        self.losses.append(float(outputs["loss"]))
+
+    def on_validation_batch_start(self, trainer, module, batch, batch_idx, dataloader_idx=0):
+        self.eval_mode_in_validation.append(not any(m.training for m in module.modules()))
+
+
+def _fit(callbacks: list[pl.Callback], epochs: int = 2) -> PoseEstimationModule:
+    torch.manual_seed(0)
+    net = MatrixFisherNet(BNEncoder(), IMAGE_SIZE, hidden=8)
+    module = PoseEstimationModule(
+        net, optimizer=functools.partial(torch.optim.Adam, lr=0.01), class_names=["a"],
+        train_grid_level=1, val_grid_level=1, eval_grid_level=1, spread_grid_level=1,
+    )  # fmt: skip
+    train = DataLoader(_items(), batch_size=BATCH, sampler=EpochShuffleSampler(N_IMAGES, seed=3))
+    trainer = pl.Trainer(
+        accelerator="cpu", devices=1, max_epochs=epochs, logger=False, enable_checkpointing=False,
+        enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0, callbacks=callbacks,
+    )  # fmt: skip
+    trainer.fit(module, train, DataLoader(_eval_items(), batch_size=4))
+    return module
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")  # Lightning's notes on workers and tiny data sets
+def test_statistics_are_the_mean_over_the_epochs_first_batches_with_the_final_weights():
+    """After training, the running mean and variance are the averages, over the first ``num_batches``
+    batches of the last epoch (as the trainer drew them), of each batch's mean and unbiased variance of
+    the BatchNorm layer's input, computed here with the final weights by a forward hook; validation runs
+    with every module in evaluation mode."""
+    record = _Record()
+    module = _fit([BatchNormStatistics(num_batches=3), record])
+    norm = module.net.encoder.norm
+    means, variances = [], []
+    hook = norm.register_forward_hook(lambda m, args, out: captured.append(args[0].detach()))
+    module.eval()
+    with torch.no_grad():
+        for images in record.batches[1][:3]:  # the last epoch's first three batches
+            captured: list[torch.Tensor] = []
+            module.net(images)
+            x = captured[0].transpose(0, 1).flatten(1)  # [channels, batch * h * w]
+            means.append(x.mean(1))
+            variances.append(x.var(1, unbiased=True))
+    hook.remove()
+    torch.testing.assert_close(norm.running_mean, torch.stack(means).mean(0), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(norm.running_var, torch.stack(variances).mean(0), rtol=1e-5, atol=1e-6)
+    assert record.eval_mode_in_validation and all(record.eval_mode_in_validation)
+    assert norm.momentum == 0.1  # update_bn's cumulative average was switched off again
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")
+def test_training_follows_the_same_path_with_and_without_the_callback():
+    """Training batches are normalised with their own statistics, and the callback leaves the random
+    state alone: the losses and the weights are exactly those of a run without it; only the running
+    statistics (what evaluation uses) differ."""
+    with_, without = _Record(), _Record()
+    a = _fit([BatchNormStatistics(num_batches=2), with_])
+    b = _fit([without])
+    assert with_.losses == without.losses and len(with_.losses) == 2 * math.ceil(N_IMAGES / BATCH)
+    for (name, p), q in zip(a.named_parameters(), b.parameters(), strict=True):
+        assert torch.equal(p, q), name
+    assert not torch.allclose(a.net.encoder.norm.running_var, b.net.encoder.norm.running_var, rtol=1e-3)
+
+
+@pytest.mark.parametrize("value", [0, -1, 2.5, True, "200"])
+def test_num_batches_must_be_a_positive_integer(value):
+    """Quick. A bad value names its config key."""
+    with pytest.raises(ValueError, match="callbacks.batchnorm_statistics.num_batches"):
+        BatchNormStatistics(num_batches=value)

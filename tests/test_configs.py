@@ -241,6 +241,7 @@ def test_model_list_is_every_method():
 ORIGINAL_CODE = {
     "projector_normalization": "sqrt",
     "n_subset": 20,
+    "subset_in_eval": True,
     "init": "kaiming_uniform",
     "so3_kernel": "tube",
     "activation_resolution": 10,
@@ -258,8 +259,8 @@ def _leaves(tree, prefix: str = "") -> dict:
     return {prefix[:-1]: tree}
 
 
-def test_i2s_original_is_i2s_with_the_original_codes_seven_choices(tmp_path):
-    """``model=i2s_original`` differs from ``model=i2s`` in exactly the original code's seven
+def test_i2s_original_is_i2s_with_the_original_codes_eight_choices(tmp_path):
+    """``model=i2s_original`` differs from ``model=i2s`` in exactly the original code's eight
     ``model.net`` keys, and nowhere else but the model group's own choice in hydra's record; its
     network runs on a batch of the built-in data's size."""
     import torch
@@ -289,9 +290,12 @@ def test_i2s_original_is_i2s_with_the_original_codes_seven_choices(tmp_path):
     net = instantiate(cfg.model.net)
     assert isinstance(net, I2S) and net.input_scaling == "unit" and net.s2_conv.init == "kaiming_uniform"
     assert net.projector.normalization == "sqrt" and net.projector.n_subset == 20
+    images = torch.randn(2, 3, 96, 96)
     with torch.no_grad():
-        out = net(torch.randn(2, 3, 96, 96))
+        out = net.eval()(images)
+        again = net(images)  # the original's forward: 20 random points in evaluation too
     assert out.shape == (2, n_so3_coeffs(6)) and torch.isfinite(out).all() and out.abs().max() > 0
+    assert not torch.allclose(out, again)
 
 
 @pytest.mark.parametrize("encoder", options("encoder"))

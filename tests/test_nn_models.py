@@ -74,9 +74,32 @@ def test_projector_subsets_points_only_in_training():
     assert c.shape == (2, 4, n_s2_coeffs(3))
 
 
+def test_projector_subset_in_eval_draws_in_every_forward_pass():
+    """``subset_in_eval`` (the original code's forward): in eval mode too, each pass projects a random
+    subset, the one ``torch.randperm`` draws, and the result equals the projection on those points."""
+    proj = SpatialS2Projector(8, 7, sphere_channels=4, lmax=3, n_subset=20, normalization="sqrt", subset_in_eval=True)
+    fmap = torch.randn(2, 8, 7, 7)
+    proj.eval()
+    torch.manual_seed(3)
+    pts = proj.sample_points()
+    assert len(pts) == 20 and len(set(pts.tolist())) == 20
+    torch.manual_seed(3)
+    a = proj(fmap)
+    torch.manual_seed(4)
+    assert not torch.allclose(a, proj(fmap))
+    # the same draw in training mode: the same coefficients
+    proj.train()
+    torch.manual_seed(3)
+    torch.testing.assert_close(a, proj(fmap))
+
+
 def test_projector_rejects_bad_input():
     with pytest.raises(ValueError, match="n_subset"):
         SpatialS2Projector(8, 7, n_subset=1000)
+    with pytest.raises(ValueError, match="subset_in_eval"):
+        SpatialS2Projector(8, 7, subset_in_eval=True)
+    with pytest.raises(ValueError, match="subset_in_eval"):
+        SpatialS2Projector(8, 7, n_subset=20, subset_in_eval="yes")
     with pytest.raises(ValueError, match="feature map must have shape"):
         SpatialS2Projector(8, 7, sphere_channels=4, lmax=2)(torch.randn(1, 8, 6, 6))
 

@@ -78,6 +78,9 @@ class I2S(_FourierNetwork):
             20, whose coefficients are mostly sampling noise above degree 2 and stop training at
             lmax 8 and 10, docs/training_fidelity.md), taper start (75 deg), disk coverage (0.9) and
             Gaussian width (0.2, in units of half the map).
+        subset_in_eval: draw the ``n_subset`` random points in evaluation too, as the original code's
+            every forward pass does (the paper: "20 points are randomly selected during each forward
+            pass"); each evaluation of an image is then a random draw. ``False``: every point at test.
         harmonic_hidden: hidden width of the harmonic projector's MLP.
         harmonic_degree_power: the harmonic projector's ``degree_power`` (0: its coefficients as they
             come; 0.5: every degree an equal share of an optimiser step;
@@ -136,6 +139,7 @@ class I2S(_FourierNetwork):
         so3_kernel: str = "local",
         output_init: str = "zero",
         input_scaling: str = "imagenet",
+        subset_in_eval: bool = False,
     ):
         super().__init__(encoder, image_size, lmax, num_classes, input_scaling)
         if output_init not in OUTPUT_INITS:
@@ -163,6 +167,7 @@ class I2S(_FourierNetwork):
                 sigma=sigma,
                 n_subset=n_subset,
                 normalization=projector_normalization,
+                subset_in_eval=subset_in_eval,
             )
         else:
             self.projector = HarmonicS2Projector(

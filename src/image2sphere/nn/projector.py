@@ -94,9 +94,10 @@ class SpatialS2Projector(nn.Module):
     over the feature cells whose centres lie inside the image's inscribed circle (the corner cells
     are never read), normalised to sum to one, and scaled by a taper that falls
     linearly from 1 at ``taper_beta`` to 0 at ``max_beta``. With ``n_subset`` set, a random subset of
-    that many grid points is used per training pass (all of them in eval mode; the paper samples 20,
-    but their coefficients are mostly sampling noise above degree 2, which stops I2S from learning at
-    lmax 8 and 10: docs/training_fidelity.md); with ``None``, every point, always. The Fourier
+    that many grid points is used per training pass (all of them in eval mode, unless ``subset_in_eval``;
+    the paper samples 20 in every forward pass, test included, as the original code does, but their
+    coefficients are mostly sampling noise above degree 2, which stops I2S from learning at lmax 8 and
+    10: docs/training_fidelity.md); with ``None``, every point, always. The Fourier
     coefficients are the discrete projection over the ``n`` points used,
     ``mean_i f(u_i) Y(u_i)`` (``normalization="mean"``, the default: an estimate of the same
     coefficients whatever ``n``, so a model trained on random subsets and evaluated on all points
@@ -122,9 +123,15 @@ class SpatialS2Projector(nn.Module):
         learn_interpolation: bool = True,
         activation: bool = True,
         normalization: str = "mean",
+        subset_in_eval: bool = False,
     ):
         super().__init__()
         self.lmax = check_lmax(lmax)
+        if not isinstance(subset_in_eval, bool):
+            raise ValueError(f"model.net.subset_in_eval must be true or false, got {subset_in_eval!r}")
+        if subset_in_eval and n_subset is None:
+            raise ValueError("model.net.subset_in_eval=true needs model.net.n_subset (the number of points to draw)")
+        self.subset_in_eval = subset_in_eval
         if normalization not in ("mean", "sqrt"):
             raise ValueError(f"normalization must be 'mean' or 'sqrt', got {normalization!r}")
         self.normalization = normalization
@@ -152,8 +159,9 @@ class SpatialS2Projector(nn.Module):
         return self.Y.shape[0]
 
     def sample_points(self) -> torch.Tensor:
-        """Indices of the grid points used by this forward pass: a random subset in training mode."""
-        if self.training and self.n_subset is not None:
+        """Indices of the grid points used by this forward pass: a random subset in training mode (and in
+        eval mode too with ``subset_in_eval``)."""
+        if (self.training or self.subset_in_eval) and self.n_subset is not None:
             return torch.randperm(self.n_points, device=self.Y.device)[: self.n_subset]
         return torch.arange(self.n_points, device=self.Y.device)
 

@@ -19,7 +19,7 @@ from conftest import haar_rotations
 from image2sphere.data.loading import EpochShuffleSampler
 from image2sphere.nn import MatrixFisherNet
 from image2sphere.training import PoseEstimationModule
-from image2sphere.training.callbacks import BatchNormStatistics
+from image2sphere.training.callbacks import BatchNormStatistics, recompute_batchnorm_statistics
 
 IMAGE_SIZE, N_IMAGES, BATCH = 16, 40, 8
 
@@ -140,3 +140,30 @@ def test_num_batches_must_be_a_positive_integer(value):
     """Quick. A bad value names its config key."""
     with pytest.raises(ValueError, match="callbacks.batchnorm_statistics.num_batches"):
         BatchNormStatistics(num_batches=value)
+
+
+def test_two_ranks_average_their_shares_to_the_one_process_mean():
+    """Quick. In a distributed run rank ``r`` averages over its share of the epoch's order (every second
+    image from ``r`` on) and the ranks' statistics are averaged (``reduce``, here the other rank's values
+    fed in the order the layers are visited). The two shares of ``n`` batches are the images of the first
+    ``2 n`` batches of one process, so the mean equals one process's over those batches exactly (in
+    float64: equal batch sizes); the variance, a mean of within-batch variances, differs only by batching."""
+    import copy
+
+    torch.manual_seed(0)
+    net = MatrixFisherNet(BNEncoder(), IMAGE_SIZE, hidden=8).double()
+    items = [{**it, "image": it["image"].double()} for it in _items()]
+    loader = DataLoader(items, batch_size=4, sampler=EpochShuffleSampler(N_IMAGES, seed=3))
+    single, rank0, rank1 = (copy.deepcopy(net) for _ in range(3))
+    recompute_batchnorm_statistics(single, loader, num_batches=4, epoch=2)
+    recompute_batchnorm_statistics(rank1, loader, num_batches=2, epoch=2, world_size=2, rank=1)
+    other = [
+        b.clone() for m in rank1.modules() if isinstance(m, nn.BatchNorm2d) for b in (m.running_mean, m.running_var)
+    ]
+    recompute_batchnorm_statistics(rank0, loader, num_batches=2, epoch=2, world_size=2, rank=0,
+                                   reduce=lambda t: (t + other.pop(0)) / 2)  # fmt: skip
+    assert not other  # every buffer was reduced
+    a, b = single.encoder.norm, rank0.encoder.norm
+    torch.testing.assert_close(b.running_mean, a.running_mean, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(b.running_var, a.running_var, rtol=0.2, atol=0.0)
+    assert not torch.equal(rank1.encoder.norm.running_mean, b.running_mean)  # rank 1 alone saw other images

@@ -36,7 +36,8 @@ changed or removed; the only additions (never for a key the command sets itself)
 * ``python benchmarks/grid_eval.py`` (about two minutes) runs until its level-3 comparison is printed,
   ``python benchmarks/table_cost.py`` to its end (a job line for every job, a total per table),
   ``python benchmarks/projection_noise.py`` to its end (a ratio per degree), ``python benchmarks/train_step.py``
-  to its end at a small size (ResNet-18, 64 px, batch 2: the paper's size takes minutes on a CPU);
+  to its end at a small size (ResNet-18, 64 px, batch 2: the paper's size takes minutes on a CPU),
+  ``python benchmarks/batchnorm_statistics.py`` to its end with one timed repeat of each pass;
 * ``pip install`` lines are compared with what ``.ci/run`` installs; ``python -m pytest`` is not run
   inside the suite: ``.ci/run`` must end with exactly that command;
 * external tools (``SKIPPED``) are listed with the reason they are not run.
@@ -1067,7 +1068,8 @@ def _param(command: Command):
         return pytest.param(command, id=command.text)
     slow = words[:2] in (["python", "benchmarks/grid_eval.py"], ["python", "benchmarks/table_cost.py"],
                          ["python", "benchmarks/data.py"], ["python", "benchmarks/projection_noise.py"],
-                         ["python", "benchmarks/train_step.py"])  # fmt: skip
+                         ["python", "benchmarks/train_step.py"],
+                         ["python", "benchmarks/batchnorm_statistics.py"])  # fmt: skip
     slow = slow or not any(w.startswith("README.md:") for w in command.where) and _first_words(command.text) == "python"
     slow = slow or needs_own_process(words)  # DDP and the joblib launcher: processes of their own
     if words[:3] == ["python", "-m", "src.train"] and not any(PRETRAINED.match(w) for w in words):
@@ -1116,6 +1118,11 @@ def test_documented_command(command: Command, fixtures_root, checkpoint_run, tmp
         out = proc.stdout
         assert proc.returncode == 0 and "bf16 / float32 step time:" in out, describe(argv, proc)
         assert "training step, float32" in out and "level-3 evaluation" in out, out
+        return
+    if args[0] == "benchmarks/batchnorm_statistics.py":  # to the end, one timed repeat of each
+        proc = run_in(ws, [*argv, "--repeats", "1", "--warmup", "1"], timeout=600)
+        assert proc.returncode == 0 and "statistics pass (one batch):" in proc.stdout, describe(argv, proc)
+        assert re.search(r"\+\d+% of the epoch's training steps", proc.stdout), proc.stdout
         return
     if args[0] == "benchmarks/projection_noise.py":  # to the end: a ratio for every degree and image size
         proc = run_in(ws, argv, timeout=600)

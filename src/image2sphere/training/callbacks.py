@@ -9,6 +9,7 @@ from __future__ import annotations
 import itertools
 import logging
 import math
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -126,12 +127,16 @@ class BatchNormStatistics(pl.Callback):
         limit = trainer.num_training_batches
         if isinstance(loader, DataLoader) and loader.batch_size is not None:
             n = self.num_batches if math.isinf(limit) else min(self.num_batches, int(limit))
-            recompute_batchnorm_statistics(
+            start = time.perf_counter()
+            layers = recompute_batchnorm_statistics(
                 pl_module, loader, n, trainer.current_epoch, forward=_TrainerForward(trainer, pl_module),
                 world_size=trainer.world_size, rank=trainer.global_rank,
                 reduce=lambda t: trainer.strategy.reduce(t, reduce_op="mean"),
                 device=trainer.strategy.root_device,
             )  # fmt: skip
+            if layers:
+                log.info("BatchNorm statistics of %d layers recomputed over %d training batches at step %d (%.1f s)",
+                         layers, n, trainer.global_step, time.perf_counter() - start)  # fmt: skip
         self._done_at = trainer.global_step
 
 

@@ -79,14 +79,15 @@ class _Record(pl.Callback):
         self.eval_mode_in_validation.append(not any(m.training for m in module.modules()))
 
 
-def _fit(callbacks: list[pl.Callback], epochs: int = 2) -> PoseEstimationModule:
+def _fit(callbacks: list[pl.Callback], epochs: int = 2, train: DataLoader | None = None) -> PoseEstimationModule:
     torch.manual_seed(0)
     net = MatrixFisherNet(BNEncoder(), IMAGE_SIZE, hidden=8)
     module = PoseEstimationModule(
         net, optimizer=functools.partial(torch.optim.Adam, lr=0.01), class_names=["a"],
         train_grid_level=1, val_grid_level=1, eval_grid_level=1, spread_grid_level=1,
     )  # fmt: skip
-    train = DataLoader(_items(), batch_size=BATCH, sampler=EpochShuffleSampler(N_IMAGES, seed=3))
+    if train is None:
+        train = DataLoader(_items(), batch_size=BATCH, sampler=EpochShuffleSampler(N_IMAGES, seed=3))
     trainer = pl.Trainer(
         accelerator="cpu", devices=1, max_epochs=epochs, logger=False, enable_checkpointing=False,
         enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0, callbacks=callbacks,
@@ -133,6 +134,23 @@ def test_training_follows_the_same_path_with_and_without_the_callback():
     for (name, p), q in zip(a.named_parameters(), b.parameters(), strict=True):
         assert torch.equal(p, q), name
     assert not torch.allclose(a.net.encoder.norm.running_var, b.net.encoder.norm.running_var, rtol=1e-3)
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")
+def test_a_loader_without_a_batch_size_is_named_in_a_warning_and_left_alone(caplog):
+    """A training loader built from a batch sampler has no batch size to rebuild batches with: the callback
+    says so once and leaves the running averages as training kept them (those of a run without it)."""
+    from torch.utils.data import BatchSampler, SequentialSampler
+
+    def loader() -> DataLoader:
+        return DataLoader(_items(), batch_sampler=BatchSampler(SequentialSampler(range(N_IMAGES)), BATCH, False))
+
+    with caplog.at_level("WARNING", logger="image2sphere.training.callbacks"):
+        a = _fit([BatchNormStatistics(num_batches=2)], train=loader())
+    b = _fit([], train=loader())
+    ours = [r.getMessage() for r in caplog.records if r.name == "image2sphere.training.callbacks"]
+    assert len(ours) == 1 and "not one DataLoader with a batch size" in ours[0]  # once, over two epochs
+    assert torch.equal(a.net.encoder.norm.running_var, b.net.encoder.norm.running_var)
 
 
 @pytest.mark.parametrize("value", [0, -1, 2.5, True, "200"])

@@ -111,6 +111,7 @@ class BatchNormStatistics(pl.Callback):
             raise ValueError(f"callbacks.batchnorm_statistics.num_batches must be an integer >= 1, got {num_batches!r}")
         self.num_batches = num_batches
         self._done_at: int | None = None  # the global step whose weights the statistics describe
+        self._warned = False
 
     def on_validation_epoch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         if not trainer.sanity_checking and trainer.state.fn == "fit":
@@ -125,7 +126,15 @@ class BatchNormStatistics(pl.Callback):
             return
         loader = trainer.train_dataloader
         limit = trainer.num_training_batches
-        if isinstance(loader, DataLoader) and loader.batch_size is not None:
+        if not (isinstance(loader, DataLoader) and loader.batch_size is not None):
+            if not self._warned:
+                log.warning(
+                    "callbacks.batchnorm_statistics: the training loader is %s, not one DataLoader with a batch size; "
+                    "BatchNorm's running averages are left as training kept them",
+                    type(loader).__name__,
+                )
+                self._warned = True
+        else:
             n = self.num_batches if math.isinf(limit) else min(self.num_batches, int(limit))
             start = time.perf_counter()
             layers = recompute_batchnorm_statistics(

@@ -6,15 +6,19 @@ of checkpointing; Hydra's callbacks, which run before the task, are :mod:`.hydra
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import itertools
 import logging
 import math
 import time
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from pathlib import Path
 
 import lightning.pytorch as pl
 import torch
+from lightning.fabric.utilities.apply_func import move_data_to_device
 from torch.optim.swa_utils import update_bn
 from torch.utils.data import DataLoader
 
@@ -23,6 +27,10 @@ from image2sphere.data.loading import EpochShuffleSampler
 __all__ = ["BatchNormStatistics", "SO3PlotCallback", "recompute_batchnorm_statistics"]
 
 log = logging.getLogger(__name__)
+
+#: training batches BatchNorm's statistics are averaged over (``callbacks.batchnorm_statistics.num_batches``,
+#: ``src.eval``'s ``batchnorm_batches``)
+BATCHNORM_BATCHES = 50
 
 
 class SO3PlotCallback(pl.Callback):
@@ -106,7 +114,7 @@ class BatchNormStatistics(pl.Callback):
         num_batches: how many training batches the statistics are averaged over (>= 1).
     """
 
-    def __init__(self, num_batches: int = 50):
+    def __init__(self, num_batches: int = BATCHNORM_BATCHES):
         if isinstance(num_batches, bool) or not isinstance(num_batches, int) or num_batches < 1:
             raise ValueError(f"callbacks.batchnorm_statistics.num_batches must be an integer >= 1, got {num_batches!r}")
         self.num_batches = num_batches
@@ -136,16 +144,14 @@ class BatchNormStatistics(pl.Callback):
                 self._warned = True
         else:
             n = self.num_batches if math.isinf(limit) else min(self.num_batches, int(limit))
-            start = time.perf_counter()
-            layers = recompute_batchnorm_statistics(
-                pl_module, loader, n, trainer.current_epoch, forward=_TrainerForward(trainer, pl_module),
+            recompute_batchnorm_statistics(
+                pl_module, loader, n, trainer.current_epoch,
+                forward=_BatchForward(pl_module, trainer.strategy.batch_to_device,
+                                      trainer.precision_plugin.train_step_context),
                 world_size=trainer.world_size, rank=trainer.global_rank,
                 reduce=lambda t: trainer.strategy.reduce(t, reduce_op="mean"),
                 device=trainer.strategy.root_device,
             )  # fmt: skip
-            if layers:
-                log.info("BatchNorm statistics of %d layers recomputed over %d training batches at step %d (%.1f s)",
-                         layers, n, trainer.global_step, time.perf_counter() - start)  # fmt: skip
         self._done_at = trainer.global_step
 
 
@@ -167,8 +173,8 @@ def recompute_batchnorm_statistics(
     sampler; this rank's share of it when ``world_size > 1``, the ranks' averages then averaged by
     ``reduce`` unless the layers are ``SyncBatchNorm``). ``loader`` gives the dataset, batch size, collate
     function and workers. ``forward``: a module that takes a batch (default: ``module(image, class_index)``
-    on ``device``). The global random state and every module's train/eval mode are left as they were.
-    Returns the number of layers recomputed."""
+    on ``device``). The global random state and every module's train/eval mode are left as they were; a
+    log line gives the layers, batches and time. Returns the number of layers recomputed."""
     norms = [m for m in module.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
     if not norms or num_batches < 1:
         return 0
@@ -186,8 +192,11 @@ def recompute_batchnorm_statistics(
     )
     modes = {m: m.training for m in module.modules()}
     device = torch.device("cpu") if device is None else torch.device(device)
+    if forward is None:
+        forward = _BatchForward(module, functools.partial(move_data_to_device, device=device))
+    start = time.perf_counter()
     with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
-        update_bn(batches, forward if forward is not None else _Forward(module, device))
+        update_bn(batches, forward)
     for m, training in modes.items():
         m.train(training)
     if world_size > 1 and reduce is not None and not any(isinstance(m, torch.nn.SyncBatchNorm) for m in norms):
@@ -195,34 +204,23 @@ def recompute_batchnorm_statistics(
             for buf in (m.running_mean, m.running_var):
                 if buf is not None:
                     buf.copy_(reduce(buf.clone()))
+    log.info("BatchNorm statistics of %d layers recomputed over %d training batches (%.1f s)", len(norms),
+             len(batches), time.perf_counter() - start)  # fmt: skip
     return len(norms)
 
 
-class _Forward(torch.nn.Module):
+class _BatchForward(torch.nn.Module):
     """``update_bn``'s model: a training batch (the dataset's dict, or ``None`` where every image was
-    corrupt) through ``module(image, class_index)`` on ``device``."""
+    corrupt), moved by ``to_device``, through ``module(image, class_index)`` inside ``context()`` (in a
+    fit: the trainer's strategy moves it, under the trainer's precision)."""
 
-    def __init__(self, module: torch.nn.Module, device: torch.device):
+    def __init__(self, module: torch.nn.Module, to_device: Callable[[dict], dict],
+                 context: Callable[[], AbstractContextManager] = contextlib.nullcontext):  # fmt: skip
         super().__init__()
-        self.module, self.device = module, device
+        self.module, self.to_device, self.context = module, to_device, context
 
     def forward(self, batch: dict | None) -> None:
         if batch is not None:
-            cls = batch.get("class_index")
-            self.module(batch["image"].to(self.device), None if cls is None else cls.to(self.device))
-
-
-class _TrainerForward(torch.nn.Module):
-    """:class:`_Forward` inside a fit: the batch moved by the trainer's strategy, under its precision."""
-
-    def __init__(self, trainer: pl.Trainer, module: pl.LightningModule):
-        super().__init__()
-        self.module = module
-        self._trainer = trainer
-
-    def forward(self, batch: dict | None) -> None:
-        if batch is None:
-            return
-        batch = self._trainer.strategy.batch_to_device(batch)
-        with self._trainer.precision_plugin.train_step_context():
-            self.module(batch["image"], batch.get("class_index"))
+            batch = self.to_device(batch)
+            with self.context():
+                self.module(batch["image"], batch.get("class_index"))

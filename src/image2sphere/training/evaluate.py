@@ -107,7 +107,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     loggers = instantiate_list(cfg.get("logger"), "logger")
     trainer: pl.Trainer = instantiate(cfg.trainer, logger=loggers or False, callbacks=[], enable_checkpointing=False)
     if cfg.get("batchnorm_statistics", "stored") == "recompute":
-        _recompute_batchnorm_statistics(module, datamodule, ckpt, int(cfg.get("batchnorm_batches") or 50), trainer)
+        _recompute_batchnorm_statistics(module, datamodule, ckpt, cfg.get("batchnorm_batches"), trainer)
     use_flag_only_signals(trainer)  # a signal stops every rank after the same test batch (training/stop.py)
     if recalibration == "off":
         module.recalibration = None
@@ -148,21 +148,21 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     return metrics
 
 
-def _recompute_batchnorm_statistics(module, datamodule, ckpt: dict, num_batches: int, trainer: pl.Trainer) -> None:
+def _recompute_batchnorm_statistics(
+    module, datamodule, ckpt: dict, num_batches: int | None, trainer: pl.Trainer
+) -> None:
     """``batchnorm_statistics=recompute``: the running statistics from the checkpoint's weights over the first
-    ``num_batches`` batches of its last epoch's training order, as ``callbacks.batchnorm_statistics`` computes
-    them at the end of that epoch (the same batches; here in float32, in this one process)."""
-    from image2sphere.training.callbacks import recompute_batchnorm_statistics
+    ``num_batches`` (null: the callback's default) batches of its last epoch's training order, as
+    ``callbacks.batchnorm_statistics`` computes them at the end of that epoch (the same batches; here in
+    float32, in this one process)."""
+    from image2sphere.training.callbacks import BATCHNORM_BATCHES, recompute_batchnorm_statistics
 
     datamodule.setup("fit")
     device = trainer.strategy.root_device
     module.to(device)
-    start = time.perf_counter()
-    n = recompute_batchnorm_statistics(module, datamodule.train_dataloader(), num_batches, int(ckpt.get("epoch", 0)),
-                                       device=device)  # fmt: skip
+    recompute_batchnorm_statistics(module, datamodule.train_dataloader(), int(num_batches or BATCHNORM_BATCHES),
+                                   int(ckpt.get("epoch", 0)), device=device)  # fmt: skip
     module.cpu()
-    log.info("BatchNorm statistics of %d layers recomputed over %d training batches (%.1f s)", n, num_batches,
-             time.perf_counter() - start)  # fmt: skip
 
 
 def recalibrated_path(ckpt_path: str | Path) -> Path:

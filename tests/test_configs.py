@@ -187,7 +187,7 @@ def test_docs_resolution_table_is_what_the_configs_compose(tmp_path):
 
 FOURIER_MODELS = {"i2s", "i2s_harmonic_projector", "i2s_spatial_filter", "i2s_harmonic_projector_spatial_filter",
                   "i2s_no_so3_conv", "i2s_two_so3_conv", "i2s_original",
-                  "fourier_mlp"}  # fmt: skip
+                  "fourier_mlp", "wigner_regression"}  # fmt: skip
 POINT_REGRESSORS = {"regression_6d", "regression_9d", "spherical_regression", "bin_delta", "i2s_icosahedral"}
 
 
@@ -234,7 +234,7 @@ def test_every_model_variant_instantiates_and_runs(tmp_path, model):
 
 def test_model_list_is_every_method():
     assert set(options("model")) == FOURIER_MODELS | POINT_REGRESSORS | {
-        "ipdf", "matrix_fisher", "rotation_laplace", "bingham", "von_mises", "viewpoint_bins"
+        "ipdf", "matrix_fisher", "rotation_laplace", "bingham", "von_mises", "viewpoint_bins", "rotation_flow"
     }  # fmt: skip
 
 

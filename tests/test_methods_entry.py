@@ -41,6 +41,8 @@ FAMILIES = {
     "von_mises": (True, True),
     "ipdf": (True, False),
     "fourier_mlp": (True, False),
+    "wigner_regression": (True, False),
+    "rotation_flow": (True, True),
 }
 MODELS = list(FAMILIES)
 REGRESSORS = [m for m, (density, _) in FAMILIES.items() if not density]

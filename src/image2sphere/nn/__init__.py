@@ -19,6 +19,8 @@ from image2sphere.nn.projector import HarmonicS2Projector, SpatialS2Projector
 from image2sphere.nn.regression import RotationRegression
 from image2sphere.nn.s2_conv import S2Conv
 from image2sphere.nn.so3_conv import SO3Conv
+from image2sphere.nn.so3_flow import RotationFlow
+from image2sphere.nn.wigner_regression import WignerDRegression
 
 __all__ = [
     "BinDeltaRegression",
@@ -32,6 +34,7 @@ __all__ = [
     "IcosahedralI2S",
     "IPDF",
     "PoseNetwork",
+    "RotationFlow",
     "RotationRegression",
     "SphericalRegression",
     "RESNET_DEPTHS",
@@ -42,4 +45,5 @@ __all__ = [
     "SO3Conv",
     "SO3ReLU",
     "SpatialS2Projector",
+    "WignerDRegression",
 ]

@@ -1,0 +1,264 @@
+"""The methods that came after I2S: direct Wigner-D regression and the normalizing flow on SO(3).
+
+Quick tier (each test well under a few seconds). The Wigner-D target against e3nn itself, the
+regression loss's equivariance and (non-)invariance to equivalent labels, the flow's normalisation on
+a fine grid, its log density against the change of variables computed by autograd, its exact inverse,
+and its exact samples against its density by a two-sample test. End-to-end runs of both methods are in
+tests/test_methods_entry.py, DDP in tests/test_scaling.py.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from e3nn import o3
+from scipy.stats import chi2_contingency
+
+from conftest import haar_rotations
+from image2sphere.distributions.base import LOG_UNIFORM_DENSITY
+from image2sphere.distributions.fourier import SO3Distribution, fourier_grid_nll
+from image2sphere.distributions.flow import FlowDistribution
+from image2sphere.nn.base import mean_loss_over_set
+from image2sphere.nn.so3_flow import MobiusCoupling, QuaternionAffine, RotationFlow, SO3Flow, mobius_circle
+from image2sphere.nn.wigner_regression import WignerDRegression, wigner_mse, wigner_target
+from image2sphere.so3.grid import so3_healpix_grid, so3_healpix_nearest_index
+from image2sphere.so3.groups import rotation_group
+from image2sphere.so3.rotations import geodesic_distance_deg, rotvec_to_matrix
+from image2sphere.so3.wigner import default_dtype, left_translate_so3_coeffs, n_so3_coeffs
+
+
+class _TinyEncoder(torch.nn.Module):
+    """A 4-channel encoder for networks built without a ResNet."""
+
+    out_channels = 4
+
+    def __init__(self):
+        super().__init__()
+        self.conv = torch.nn.Conv2d(3, 4, 3, stride=4)
+
+    def feature_size(self, image_size):
+        return (image_size - 3) // 4 + 1
+
+    def forward(self, x):
+        return self.conv(x)
+
+
+# ------------------------------------------------------------------ Wigner-D regression
+@pytest.mark.parametrize("lmax", [1, 4])
+def test_wigner_target_is_e3nns_wigner_d_of_the_rotation(lmax):
+    R = haar_rotations(5, seed=lmax)
+    with default_dtype(torch.float64):
+        angles = o3.matrix_to_angles(R)  # e3nn's own angles: independent of our matrix_to_angles
+        expected = torch.cat([o3.wigner_D(l, *angles).flatten(-2) for l in range(lmax + 1)], dim=-1)
+    target = wigner_target(lmax, R)
+    assert target.shape == (5, n_so3_coeffs(lmax))
+    torch.testing.assert_close(target, expected, atol=1e-10, rtol=0)
+    # degree 1 is the rotation itself in e3nn's (y, z, x) basis: orthogonal with determinant 1
+    D1 = target[:, 1:10].reshape(5, 3, 3)
+    torch.testing.assert_close(D1 @ D1.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(5, 3, 3))
+
+
+def test_wigner_target_read_as_coefficients_peaks_at_its_rotation():
+    lmax, level = 6, 3
+    R = haar_rotations(4, seed=1)
+    mode = SO3Distribution(wigner_target(lmax, R), lmax).mode(level)  # grid argmax of the signal
+    nearest = so3_healpix_grid(level, dtype=torch.float64)[so3_healpix_nearest_index(R, level)]
+    torch.testing.assert_close(mode, nearest)
+    assert (geodesic_distance_deg(mode, R) < 6).all()
+
+
+def test_wigner_loss_is_equivariant_and_zero_only_at_the_target():
+    lmax = 3
+    torch.manual_seed(0)
+    c = torch.randn(3, n_so3_coeffs(lmax), dtype=torch.float64)
+    R, g = haar_rotations(3, seed=2), haar_rotations(1, seed=3)[0]
+    loss = wigner_mse(c, wigner_target(lmax, R))
+    moved = wigner_mse(left_translate_so3_coeffs(c, g, lmax), wigner_target(lmax, g @ R))  # c^l -> D^l(g) c^l, R -> gR
+    torch.testing.assert_close(moved, loss)
+    assert (loss > 0.1).all()
+    assert wigner_mse(wigner_target(lmax, R), wigner_target(lmax, R)).abs().max() < 1e-12
+
+
+def _wigner_net(**kwargs) -> WignerDRegression:
+    return WignerDRegression(_TinyEncoder(), image_size=16, lmax=2, sphere_channels=4, so3_channels=2,
+                             harmonic_hidden=4, **kwargs).double()  # fmt: skip
+
+
+def test_wigner_loss_depends_on_the_equivalent_label_but_its_set_average_does_not():
+    """A single label of a symmetric object gives a different loss for each equivalent rotation (the
+    regression cannot represent a symmetry); averaged over the whole set it is the same whichever
+    rotation of the set is the label, and it is the expectation of the single-label loss."""
+    net = _wigner_net()
+    torch.manual_seed(1)
+    c = torch.randn(2, n_so3_coeffs(2), dtype=torch.float64)
+    R = haar_rotations(2, seed=4)
+    S = rotation_group("T").to(torch.float64)  # the tetrahedron's 12 rotations
+    single = torch.stack([net.loss(c, R @ s, grid_level=1) for s in S], dim=1)  # [B, 12]
+    assert (single.max(1).values - single.min(1).values > 0.05).all()
+    mask = torch.ones(2, 12, dtype=torch.bool)
+    as_label = net.set_loss(c, R[:, None] @ S, mask, 1)  # R S_k
+    other = net.set_loss(c, (R @ S[5])[:, None] @ S, mask, 1)  # another representative: the same set
+    torch.testing.assert_close(other, as_label)
+    torch.testing.assert_close(as_label, single.mean(1))
+    torch.testing.assert_close(as_label, mean_loss_over_set(net.loss, c, R[:, None] @ S, mask, 1))
+
+
+def test_wigner_loss_adds_the_distribution_loss_with_its_weight_and_checks_its_weights():
+    R = haar_rotations(3, seed=5)
+    torch.manual_seed(2)
+    c = torch.randn(3, n_so3_coeffs(2), dtype=torch.float64)
+    plain, mixed = _wigner_net(), _wigner_net(regression_weight=2.0, distribution_weight=0.5)
+    expected = 2 * plain.loss(c, R, 2) + 0.5 * fourier_grid_nll(c, 2, R, 2)
+    torch.testing.assert_close(mixed.loss(c, R, 2), expected)
+    padded = torch.cat([R[:, None], R[:, None]], 1)
+    mask = torch.tensor([[True, False]] * 3)
+    torch.testing.assert_close(mixed.set_loss(c, padded, mask, 2), expected)
+    for bad in ({"regression_weight": 0}, {"distribution_weight": -1}, {"distribution_weight": float("nan")}):
+        with pytest.raises(ValueError, match=f"model.net.{next(iter(bad))}"):
+            _wigner_net(**bad)
+
+
+# ------------------------------------------------------------------ the flow
+def _random_flow(scale: float, seed: int = 0, blocks: int = 2, dim: int = 5) -> tuple[SO3Flow, torch.Tensor]:
+    """A float64 flow with every parameter drawn at ``scale`` (not the identity it starts as) and 3 conditions."""
+    torch.manual_seed(seed)
+    flow = SO3Flow(dim, blocks=blocks, hidden=16).double()
+    with torch.no_grad():
+        for p in flow.parameters():
+            p.normal_(0, scale)
+    return flow, torch.randn(3, dim, dtype=torch.float64)
+
+
+def test_mobius_map_keeps_the_circle_and_its_inverse_is_minus_w():
+    torch.manual_seed(3)
+    theta = torch.rand(50, dtype=torch.float64) * 2 * math.pi
+    x = torch.stack([theta.cos(), theta.sin(), torch.zeros_like(theta)], -1)  # the circle in the xy-plane
+    w = torch.tensor([0.5, -0.3, 0.0], dtype=torch.float64)
+    y, log_det = mobius_circle(x, w)
+    torch.testing.assert_close(y.norm(dim=-1), torch.ones(50, dtype=torch.float64))
+    assert y[:, 2].abs().max() < 1e-15
+    torch.testing.assert_close(mobius_circle(y, -w)[0], x)
+    # the derivative of the angle, by central differences
+    h = 1e-6
+    def angle(t):  # noqa: E306
+        p = mobius_circle(torch.stack([t.cos(), t.sin(), torch.zeros_like(t)], -1), w)[0]
+        return torch.atan2(p[:, 1], p[:, 0])
+    d = torch.remainder(angle(theta + h) - angle(theta - h) + math.pi, 2 * math.pi) - math.pi
+    torch.testing.assert_close(log_det, (d / (2 * h)).log(), atol=1e-6, rtol=0)
+
+
+def test_flow_density_integrates_to_one_on_a_fine_grid():
+    """The grid mean of ``exp(log p) * pi^2`` (the integral by the equal-volume HEALPix quadrature) is 1 to
+    2e-3 at level 4, and the largest error shrinks at least fourfold from level 3 to 4 (a converging
+    quadrature, not a constant offset)."""
+    flow, z = _random_flow(0.15)
+    errors = []
+    for level in (3, 4):
+        grid = so3_healpix_grid(level, dtype=torch.float64)
+        with torch.no_grad():
+            log_p = torch.cat([flow.log_prob(z, grid[i : i + 65536]) for i in range(0, len(grid), 65536)], 1)
+        assert (log_p.max(1).values - LOG_UNIFORM_DENSITY > 3).all()  # far from uniform: 20 times its density
+        errors.append((log_p.exp().mean(1) * math.pi**2 - 1).abs())
+    assert (errors[1] < 2e-3).all(), errors[1]
+    assert errors[1].max() < errors[0].max() / 4, errors  # the sharpest of the three converges
+
+
+def _haar_log_jacobian(flow: SO3Flow, z: torch.Tensor, R0: torch.Tensor) -> torch.Tensor:
+    """``log |det dT|`` at ``R0 (3, 3)`` for condition ``z (1, F)`` by autograd: the 3 x 3 Jacobian of
+    ``w -> log(T(R0)^T T(R0 exp(w)))`` at 0, in right-trivialised coordinates (Haar measure: unit density)."""
+    T0 = flow.transform(z, R0[None])[0][0, 0]
+
+    def moved(w):
+        return flow.transform(z, (R0 @ rotvec_to_matrix(w))[None])[0][0, 0]  # [3, 3]
+
+    dT = torch.autograd.functional.jacobian(moved, torch.zeros(3, dtype=torch.float64))  # [3, 3, 3 (w)]
+    X = torch.einsum("ji,jka->aik", T0, dT)  # T0^T dT/dw_a: skew  [a, 3, 3]
+    J = torch.stack([X[:, 2, 1], X[:, 0, 2], X[:, 1, 0]], dim=0)  # vee, columns a  [3, 3]
+    return torch.linalg.det(J).abs().log()
+
+
+def test_flow_log_density_is_the_change_of_variables():
+    flow, z = _random_flow(0.3, seed=1)
+    R0 = haar_rotations(4, seed=6)
+    for b in range(2):
+        R, log_det = flow.transform(z[b : b + 1], R0)
+        log_p = flow.log_prob(z[b : b + 1], R)  # backwards through every layer's inverse
+        for k in range(4):
+            reference = LOG_UNIFORM_DENSITY - _haar_log_jacobian(flow, z[b : b + 1], R0[k])
+            torch.testing.assert_close(log_p[0, k], reference, atol=1e-8, rtol=0)
+            torch.testing.assert_close(log_det[0, k], -(log_p[0, k] - LOG_UNIFORM_DENSITY), atol=1e-8, rtol=0)
+
+
+def test_flow_layers_invert_exactly_and_start_as_the_identity():
+    flow, z = _random_flow(0.3, seed=2)
+    R0 = haar_rotations(6, seed=7).expand(3, 6, 3, 3)
+    for layer in flow.layers:
+        R1, forward = layer(R0, z)
+        back, inverse = layer.inverse(R1, z)
+        torch.testing.assert_close(back, R0, atol=1e-10, rtol=0)
+        torch.testing.assert_close(inverse, -forward, atol=1e-10, rtol=0)
+        torch.testing.assert_close(R1.transpose(-1, -2) @ R1, torch.eye(3, dtype=torch.float64).expand_as(R1))
+        torch.testing.assert_close(torch.linalg.det(R1), torch.ones(3, 6, dtype=torch.float64))
+    fresh = SO3Flow(5, blocks=1).double()
+    assert all(isinstance(m, (MobiusCoupling, QuaternionAffine)) for m in fresh.layers)
+    R, log_det = fresh.transform(z, R0)
+    torch.testing.assert_close(R, R0)
+    torch.testing.assert_close(fresh.log_prob(z, R0), torch.full((3, 6), LOG_UNIFORM_DENSITY, dtype=torch.float64))
+
+
+def _binned(R: torch.Tensor) -> torch.Tensor:
+    """Counts of rotations ``(n, 3, 3)`` in the 72 cells of the level-0 grid (nearest point)."""
+    return torch.bincount(so3_healpix_nearest_index(R, 0), minlength=72)
+
+
+def test_flow_samples_follow_its_density_by_a_two_sample_test():
+    """Exact samples (uniform rotations through the flow) against draws from the density itself on the
+    level-4 grid, binned into the level-0 grid's 72 cells: a chi-square two-sample test accepts them,
+    and rejects samples of a different flow (the test has power)."""
+    flow, z = _random_flow(0.15, seed=3)
+    dist = FlowDistribution(z[:1], flow.log_prob, flow.sample, width=16)
+    gen = torch.Generator().manual_seed(0)
+    exact = dist.exact_sample(6000, generator=gen)[0]  # [n, 3, 3]
+    grid = so3_healpix_grid(4, dtype=torch.float64)
+    with torch.no_grad():
+        log_p = dist.unnormalized_log_density(grid)[0]  # the density at the grid's equal-volume points
+    pick = torch.multinomial(torch.softmax(log_p, 0), 6000, replacement=True, generator=torch.Generator().manual_seed(1))
+    on_grid = grid[pick]
+    counts = torch.stack([_binned(exact), _binned(on_grid)]).numpy()
+    keep = counts.sum(0) > 0
+    p_same = chi2_contingency(counts[:, keep])[1]
+    assert p_same > 1e-3, p_same
+    other, z2 = _random_flow(0.15, seed=4)
+    different = other.sample(z2[:1], 6000, generator=torch.Generator().manual_seed(2))[0]
+    counts = torch.stack([_binned(exact), _binned(different)]).numpy()
+    keep = counts.sum(0) > 0
+    assert chi2_contingency(counts[:, keep])[1] < 1e-6
+
+
+def test_flow_network_is_uniform_at_the_start_normalised_and_trained_by_the_exact_nll():
+    net = RotationFlow(_TinyEncoder(), image_size=16, condition_dim=6, blocks=1, hidden=8).double()
+    images = torch.randn(2, 3, 16, 16, dtype=torch.float64)
+    output = net(images)
+    dist = net.output_distribution(output)
+    R = haar_rotations(5, seed=8)
+    assert dist.has_exact_density
+    torch.testing.assert_close(dist.exact_log_normalizer(), torch.zeros(2, dtype=torch.float64))
+    torch.testing.assert_close(dist.exact_log_density(R), torch.full((2, 5), LOG_UNIFORM_DENSITY, dtype=torch.float64))
+    with torch.no_grad():
+        for p in net.flow.parameters():
+            p.normal_(0, 0.2)
+    dist = net.output_distribution(output)
+    labels = R[:2]
+    loss = net.loss(output, labels)
+    torch.testing.assert_close(loss, -dist.exact_log_density(labels[:, None])[:, 0])
+    loss.sum().backward()
+    assert net.encoder.conv.weight.grad.abs().sum() > 0  # the image conditions the flow
+    rotations = torch.stack([R[:3], R[2:]])  # [2, 3, 3, 3]
+    mask = torch.tensor([[True, True, False], [True, True, True]])
+    torch.testing.assert_close(
+        net.set_loss(output, rotations, mask, 1), mean_loss_over_set(net.loss, output, rotations, mask, 1)
+    )
+    with pytest.raises(ValueError, match="rotation must have shape"):
+        net.loss(output, R[:3])

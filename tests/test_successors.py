@@ -18,8 +18,8 @@ from scipy.stats import chi2_contingency
 
 from conftest import haar_rotations
 from image2sphere.distributions.base import LOG_UNIFORM_DENSITY
-from image2sphere.distributions.fourier import SO3Distribution, fourier_grid_nll
 from image2sphere.distributions.flow import FlowDistribution
+from image2sphere.distributions.fourier import SO3Distribution, fourier_grid_nll
 from image2sphere.nn.base import mean_loss_over_set
 from image2sphere.nn.so3_flow import MobiusCoupling, QuaternionAffine, RotationFlow, SO3Flow, mobius_circle
 from image2sphere.nn.wigner_regression import WignerDRegression, wigner_mse, wigner_target
@@ -142,9 +142,11 @@ def test_mobius_map_keeps_the_circle_and_its_inverse_is_minus_w():
     torch.testing.assert_close(mobius_circle(y, -w)[0], x)
     # the derivative of the angle, by central differences
     h = 1e-6
+
     def angle(t):  # noqa: E306
         p = mobius_circle(torch.stack([t.cos(), t.sin(), torch.zeros_like(t)], -1), w)[0]
         return torch.atan2(p[:, 1], p[:, 0])
+
     d = torch.remainder(angle(theta + h) - angle(theta - h) + math.pi, 2 * math.pi) - math.pi
     torch.testing.assert_close(log_det, (d / (2 * h)).log(), atol=1e-6, rtol=0)
 
@@ -224,7 +226,8 @@ def test_flow_samples_follow_its_density_by_a_two_sample_test():
     grid = so3_healpix_grid(4, dtype=torch.float64)
     with torch.no_grad():
         log_p = dist.unnormalized_log_density(grid)[0]  # the density at the grid's equal-volume points
-    pick = torch.multinomial(torch.softmax(log_p, 0), 6000, replacement=True, generator=torch.Generator().manual_seed(1))
+    gen = torch.Generator().manual_seed(1)
+    pick = torch.multinomial(torch.softmax(log_p, 0), 6000, replacement=True, generator=gen)
     on_grid = grid[pick]
     counts = torch.stack([_binned(exact), _binned(on_grid)]).numpy()
     keep = counts.sum(0) > 0

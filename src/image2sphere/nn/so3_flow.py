@@ -286,4 +286,3 @@ class RotationFlow(PoseNetwork):
 
         log_p = self.flow.log_prob(output, fill_padding(rotations, mask).to(output))  # [B, M]
         return -(log_p * real).sum(1) / real.sum(1)
-

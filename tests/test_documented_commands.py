@@ -725,11 +725,11 @@ def test_a_table_command_runs_the_tables_first_and_last_job():
     from torchvision.models import get_weight
 
     args = ["table=table2", "encoder.weights=IMAGENET1K_V2"]
-    assert table_selection(args) == [0, 13] and first_batch([0, 13]) == [0] and first_batch([3, 4, 6]) == [3, 4]
+    assert table_selection(args) == [0, 15] and first_batch([0, 15]) == [0] and first_batch([3, 4, 6]) == [3, 4]
     assert table_selection([*args, "hydra.sweeper.jobs=[7,3,7]"]) == [3, 7]
     first, last = job_overrides(args)
     assert first == ["experiment=pascal3d", "model=i2s", "seed=0", *args]
-    assert last == ["experiment=pascal3d", "model=ipdf", *args]
+    assert last == ["experiment=pascal3d", "model=rotation_flow", *args]
     assert {"experiment", "model", "seed"} <= set(sweep_values(args)) and "encoder.weights" not in sweep_values(args)
     # a key on the command line replaces the table's own sweep of it: Table 7 with lmax=4 is one job
     assert all_table_jobs(["table=table7", "lmax=4"]) == [

@@ -94,6 +94,36 @@ def test_ddp_metrics_equal_one_process_on_the_same_weights(ddp_run, tmp_path):
 
 
 @pytest.mark.slow
+def test_ddp_flow_run_and_its_evaluation_equal_one_process(tmp_path, data_dir):
+    """The normalizing flow (model=rotation_flow: exact density, exact samples, no grid in its loss) trained
+    on two processes: its test metrics, the exact log likelihood included, equal one process's on the
+    same weights, and so do those of src.eval on two processes."""
+    from conftest import TINY
+
+    i2s_only = ("lmax", "model.net.")  # the tiny settings of I2S's network do not apply to the flow
+    tiny = [
+        a
+        for a in TINY
+        if not a.startswith(i2s_only) and not a.startswith(("dataset.render.test", "dataset.batch_size"))
+    ]
+    flow = ["model=rotation_flow", "model.net.blocks=1", "model.net.condition_dim=8", "model.net.hidden=8"]
+    run = tmp_path / "run"
+    paths = [f"paths.data_dir={data_dir}", f"paths.log_dir={tmp_path}"]
+    run_module([sys.executable, "-m", "src.train", *tiny, *paths, *DDP, *flow, "logger=csv", "trainer.max_epochs=1",
+                f"hydra.run.dir={run}"])  # fmt: skip
+    trained = read_metrics(run)
+    assert trained["n_images"] == 2 * TEST_PER_SHAPE and "log_likelihood_exact" in trained
+    ckpt = run / "checkpoints" / "last.ckpt"
+    one, two = tmp_path / "one", tmp_path / "two"
+    run_eval([f"ckpt_path={ckpt}", "eval_grid_level=3", f"hydra.run.dir={one}", f"paths.data_dir={data_dir}"], tmp_path)
+    single = read_metrics(one)
+    assert_same_metrics(trained, single)
+    run_eval([f"ckpt_path={ckpt}", "eval_grid_level=3", f"hydra.run.dir={two}", f"paths.data_dir={data_dir}", *DDP[:2],
+              "trainer.accelerator=cpu"], tmp_path)  # fmt: skip
+    assert_same_metrics(read_metrics(two), single)
+
+
+@pytest.mark.slow
 def test_ddp_run_resumes_from_its_checkpoint_on_two_processes(ddp_run, tmp_path, data_dir):
     run, _ = ddp_run
     resumed = tmp_path / "resumed"

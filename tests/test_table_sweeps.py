@@ -92,7 +92,7 @@ def test_each_table_file_names_exactly_the_runs_of_its_table(table):
     expected_seeds = {"table1": 5, "table2": 6, "table5": 6}.get(table, 1)
     assert len(filled.cells[i2s][0].runs) == expected_seeds
     assert sorted(r.seed for r in filled.cells[i2s][0].runs) == list(range(expected_seeds))
-    assert len(jobs) == {"table1": 12, "table2": 14, "table3": 28, "table4": 6, "table5": 13, "table6": 4,
+    assert len(jobs) == {"table1": 14, "table2": 16, "table3": 36, "table4": 6, "table5": 15, "table6": 4,
                          "table7": 5, "table8": 6}[table]  # fmt: skip
 
 

@@ -210,6 +210,8 @@ def build_table(name: str, layout: dict[str, Any], runs: list[Run], dataset: str
             f"runs on dataset={dataset}, the paper's table is on {paper_dataset}: "
             "the published numbers are not comparable"
         )
+    # rows whose published numbers come from another paper than I2S's say where (or that they were not found)
+    notes += [f"{row['label']}: {' '.join(str(row['source']).split())}" for row in layout["rows"] if row.get("source")]
     return FilledTable(
         name=name,
         layout=layout,

@@ -71,6 +71,8 @@ METHODS = (
     "spherical_regression",
     "bin_delta",
     "i2s_icosahedral",
+    "wigner_regression",
+    "rotation_flow",
 )
 REFERENCE = "i2s"
 CONF = Path(__file__).resolve().parents[1] / "conf"

@@ -265,3 +265,34 @@ def test_flow_network_is_uniform_at_the_start_normalised_and_trained_by_the_exac
     )
     with pytest.raises(ValueError, match="rotation must have shape"):
         net.loss(output, R[:3])
+
+
+def test_implicit_density_runs_the_network_once_per_query_without_gradients():
+    """Repeated sweeps of one distribution without gradients (the test's log normaliser, the tempered
+    distribution's, the spread) evaluate the network once per grid chunk; a query written in place, a
+    different query and any evaluation with gradients run it again."""
+    from image2sphere.distributions.implicit import ImplicitDistribution
+
+    calls = []
+
+    def score(features, rotations):
+        calls.append(rotations.shape[-3])
+        return (features[:, :1] * rotations.flatten(-2)[..., 0]).expand(len(features), -1)  # [B, K]
+
+    dist = ImplicitDistribution(torch.randn(2, 3), score, width=4)
+    with torch.no_grad():
+        first = dist.grid_logsumexp_and_max(2)[0]
+        n = len(calls)
+        torch.testing.assert_close(
+            dist.tempered(0.5).grid_logsumexp_and_max(2)[0], dist.tempered(0.5).grid_logsumexp_and_max(2)[0]
+        )
+        assert len(calls) == n  # the tempered sweeps read the kept values
+        torch.testing.assert_close(dist.grid_logsumexp_and_max(2)[0], first)
+        R = haar_rotations(5, dtype=torch.float32)
+        before = dist.unnormalized_log_density(R)
+        R[0] = R[1]  # written in place: its values are recomputed
+        after = dist.unnormalized_log_density(R)
+        assert len(calls) == n + 2
+        torch.testing.assert_close(after[:, 0], before[:, 1])
+    dist.unnormalized_log_density(R)
+    assert len(calls) == n + 3  # with gradients: never from the kept values

@@ -7,7 +7,8 @@
   (streamed sweeps, log densities, modes, sampling, points above a threshold), for any family;
   :mod:`~image2sphere.distributions.hdr_masses`: the highest-density-region masses of its sweep.
 * The families, one module each: ``fourier`` (I2S's :class:`~image2sphere.distributions.fourier.SO3Distribution`),
-  ``matrix_fisher``, ``rotation_laplace``, ``bingham``, ``von_mises``, ``euler_bins``, ``implicit``.
+  ``matrix_fisher``, ``rotation_laplace``, ``bingham``, ``von_mises``, ``euler_bins``, ``implicit``,
+  ``flow`` (a normalizing flow's exact density and samples).
 """
 
 from image2sphere.distributions.base import (

@@ -12,6 +12,10 @@ Conventions (docs/conventions.md#densities)
   -> (B, K)`` and evaluated lazily, in sub-chunks of at most :data:`MAX_ACTIVATION_ELEMENTS`
   hidden values (``B x k x width``), so a grid chunk of the base class (``CHUNK_POINTS`` rotations)
   never builds a ``(B, CHUNK_POINTS, width)`` activation.
+* Evaluated without gradients, the values at a query tensor are kept (up to :data:`MAX_MEMO_ELEMENTS`
+  per distribution, with the query tensor, so its memory is not reused meanwhile): the grid sweeps of one
+  test batch (the log normaliser and highest-density masses, the recalibrated distribution's, which
+  divides the same values by its temperature, and the spread) then run the network over the grid once.
 """
 
 from __future__ import annotations
@@ -23,10 +27,19 @@ import torch
 from image2sphere.checks import check_int
 from image2sphere.distributions.base import PoseDistribution
 
-__all__ = ["MAX_ACTIVATION_ELEMENTS", "ImplicitDistribution"]
+__all__ = ["MAX_ACTIVATION_ELEMENTS", "MAX_MEMO_ELEMENTS", "ImplicitDistribution"]
 
 # hidden values (B x k x width) per call of the scoring network: 64 MiB of float32 per activation
 MAX_ACTIVATION_ELEMENTS = 1 << 24
+# log densities kept per distribution for repeated queries without gradients (256 MiB of float32)
+MAX_MEMO_ELEMENTS = 1 << 26
+
+
+def _memo_key(rotations: torch.Tensor) -> tuple:
+    """The memory a query tensor views (storage, offset, shape, strides) and its version (in-place writes)."""
+    return (rotations.untyped_storage().data_ptr(), rotations.storage_offset(), tuple(rotations.shape),
+            rotations.stride(), rotations._version, rotations.dtype, rotations.device)  # fmt: skip
+
 
 ScoreFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -55,6 +68,8 @@ class ImplicitDistribution(PoseDistribution):
         self.width = width
         self.batch_size, self.dtype, self.device = features.shape[0], features.dtype, features.device
         self.points_per_call = max(1, MAX_ACTIVATION_ELEMENTS // (self.batch_size * width))
+        self._memo: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
+        self._memo_elements = 0
 
     def unnormalized_log_density(self, rotations: torch.Tensor) -> torch.Tensor:
         """``score`` at ``(K, 3, 3)`` (shared) or ``(B, K, 3, 3)`` rotations: ``(B, K)``, evaluated
@@ -71,6 +86,13 @@ class ImplicitDistribution(PoseDistribution):
         n = rotations.shape[-3]
         if n == 0:
             return self.features.new_zeros(self.batch_size, 0)
+        key = None if torch.is_grad_enabled() else _memo_key(rotations)
+        if key is not None and key in self._memo:
+            return self._memo[key][1]
         step = self.points_per_call
         parts = [self.score(self.features, rotations[..., s : s + step, :, :]) for s in range(0, n, step)]
-        return parts[0] if len(parts) == 1 else torch.cat(parts, dim=1)  # [B, K]
+        values = parts[0] if len(parts) == 1 else torch.cat(parts, dim=1)  # [B, K]
+        if key is not None and self._memo_elements + values.numel() <= MAX_MEMO_ELEMENTS:
+            self._memo[key] = (rotations, values)  # the rotations held: their memory cannot be reused meanwhile
+            self._memo_elements += values.numel()
+        return values

@@ -963,13 +963,16 @@ def check_tables(argv, proc, args: list[str], ws: Workspace) -> None:
     if "--help" in args or "-h" in args:
         assert proc.stdout.startswith("usage:") and "RUN_DIR" in proc.stdout and "--table" in proc.stdout, info
         return
+    from image2sphere.reporting import load_layouts
+
     given = tables_options(args)
     tables = given.table or sorted({m.group(1) for d in given.run_dirs for m in [TABLE_SWEEP_DIR.search(d)] if m})
     assert tables, f"no table named or launched: {args}"
     out = ws.root / (given.out or Path(given.run_dirs[0]) / "tables")
     for table in tables:
-        number = re.fullmatch(r"table(\d+)", table).group(1)
-        assert f"### Table {number}" in proc.stdout, info
+        number = re.fullmatch(r"table(\d+)", table)  # a paper's table, else a small sweep's own layout
+        heading = f"### Table {number.group(1)}" if number else f"### {load_layouts()[table]['title']}"
+        assert heading in proc.stdout, info
         assert (out / f"{table}.md").is_file() and (out / f"{table}.tex").is_file(), f"nothing written to {out}" + info
     assert "ours (" in proc.stdout, "no row has a run" + info
     assert "not in this table" not in proc.stdout and "not finished" not in proc.stdout + proc.stderr, info

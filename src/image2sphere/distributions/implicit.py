@@ -35,10 +35,16 @@ MAX_ACTIVATION_ELEMENTS = 1 << 24
 MAX_MEMO_ELEMENTS = 1 << 26
 
 
+def _version(tensor: torch.Tensor) -> int:
+    """The in-place write counter of ``tensor``; -1 for an inference tensor, which has none (Lightning's test
+    loop: its queries are the grid's and the labels, never written in place)."""
+    return -1 if tensor.is_inference() else tensor._version
+
+
 def _memo_key(rotations: torch.Tensor) -> tuple:
     """The memory a query tensor views (storage, offset, shape, strides) and its version (in-place writes)."""
     return (rotations.untyped_storage().data_ptr(), rotations.storage_offset(), tuple(rotations.shape),
-            rotations.stride(), rotations._version, rotations.dtype, rotations.device)  # fmt: skip
+            rotations.stride(), _version(rotations), rotations.dtype, rotations.device)  # fmt: skip
 
 
 ScoreFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]

@@ -296,3 +296,23 @@ def test_implicit_density_runs_the_network_once_per_query_without_gradients():
         torch.testing.assert_close(after[:, 0], before[:, 1])
     dist.unnormalized_log_density(R)
     assert len(calls) == n + 3  # with gradients: never from the kept values
+
+
+@pytest.mark.parametrize("group, vanishes", [("T", True), ("O", True), ("I", True), ("C4", False), ("D2", True)])
+def test_flow_starts_where_the_expected_gradient_of_a_symmetric_label_vanishes_unless_an_axis_is_invariant(
+    group, vanishes
+):
+    """At its start (every layer the identity) each layer's first-order change of the log density is a
+    degree-1 function of the rotation (a Möbius centre moves one column; the affine layer changes q q^T).
+    Averaged over a symmetry group with no invariant axis (tetrahedron, cube, icosahedron, a dihedral
+    group), degree 1 averages to zero: the expected gradient of the loss with a random equivalent label
+    (and the gradient of the set-averaged loss) is exactly zero, and only the noise of the random
+    labels moves the flow off the uniform distribution. A group that keeps an axis (a cone's, here C4)
+    has a gradient at the start (docs/methods.md, "Successors at small scale")."""
+    flow = SO3Flow(5, blocks=2, hidden=16).double()
+    z = torch.randn(1, 5, dtype=torch.float64)
+    R = haar_rotations(1, seed=9)[0]
+    S = rotation_group(group).to(torch.float64)
+    (-flow.log_prob(z, (R @ S)[None]).mean()).backward()
+    norm = math.sqrt(sum(p.grad.square().sum().item() for p in flow.parameters() if p.grad is not None))
+    assert (norm < 1e-10) if vanishes else (norm > 1e-2), norm

@@ -184,6 +184,18 @@ class PoseNetwork(Float32Head):
         return self.output_distribution(self(images, class_index))
 
 
+def check_rotation_set(output: torch.Tensor, rotations: torch.Tensor, mask: torch.Tensor) -> None:
+    """``ValueError`` unless ``rotations (B, M, 3, 3)`` and ``mask (B, M)`` match the ``B`` rows of ``output``
+    and every image has at least one real rotation (the arguments of :meth:`PoseNetwork.set_loss`)."""
+    if mask.ndim != 2 or rotations.shape != (*mask.shape, 3, 3) or len(output) != len(mask):
+        raise ValueError(
+            f"rotations (B, M, 3, 3) and mask (B, M) must match the output's batch of {len(output)}, "
+            f"got {tuple(rotations.shape)} and {tuple(mask.shape)}"
+        )
+    if (mask.sum(1) == 0).any():
+        raise ValueError("every image needs at least one real rotation in mask")
+
+
 def mean_loss_over_set(
     loss: Callable[..., torch.Tensor],
     output: torch.Tensor,
@@ -196,14 +208,8 @@ def mean_loss_over_set(
     ``loss`` once per real rotation on its image's output (the rows of ``output`` repeated), a batch of
     ``B`` rows at a time: as much memory as one ordinary step, and ``K / B`` times its loss's time for
     ``K`` real rotations (a cone's 360 or a cylinder's 720 per image make it that much slower)."""
-    if mask.ndim != 2 or rotations.shape != (*mask.shape, 3, 3) or len(output) != len(mask):
-        raise ValueError(
-            f"rotations (B, M, 3, 3) and mask (B, M) must match the output's batch of {len(output)}, "
-            f"got {tuple(rotations.shape)} and {tuple(mask.shape)}"
-        )
+    check_rotation_set(output, rotations, mask)
     counts = mask.sum(1)
-    if (counts == 0).any():
-        raise ValueError("every image needs at least one real rotation in mask")
     image, k = mask.nonzero(as_tuple=True)  # [K], [K]
     # in pieces of one batch each: the memory of one ordinary step, the time of K / B of them
     size = len(mask)

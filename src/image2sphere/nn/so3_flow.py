@@ -47,7 +47,7 @@ from torch import nn
 from image2sphere.checks import check_int
 from image2sphere.distributions.base import LOG_UNIFORM_DENSITY
 from image2sphere.distributions.flow import FlowDistribution
-from image2sphere.nn.base import PoseNetwork
+from image2sphere.nn.base import PoseNetwork, check_rotation_set
 from image2sphere.so3.rotations import matrix_to_quaternion, quaternion_to_matrix, random_rotations
 
 __all__ = ["MobiusCoupling", "QuaternionAffine", "RotationFlow", "SO3Flow", "mobius_circle"]
@@ -274,14 +274,8 @@ class RotationFlow(PoseNetwork):
     ) -> torch.Tensor:
         """The negative log likelihood averaged over each image's equivalent ``rotations (B, M, 3, 3)``
         where ``mask (B, M)``: one batched pass of the flow for every rotation of the set."""
-        if mask.ndim != 2 or rotations.shape != (*mask.shape, 3, 3) or len(output) != len(mask):
-            raise ValueError(
-                f"rotations (B, M, 3, 3) and mask (B, M) must match the output's batch of {len(output)}, "
-                f"got {tuple(rotations.shape)} and {tuple(mask.shape)}"
-            )
+        check_rotation_set(output, rotations, mask)
         real = mask.to(output)
-        if (real.sum(1) == 0).any():
-            raise ValueError("every image needs at least one real rotation in mask")
         from image2sphere.metrics import fill_padding  # here: metrics imports the nn package's users
 
         log_p = self.flow.log_prob(output, fill_padding(rotations, mask).to(output))  # [B, M]

@@ -31,6 +31,7 @@ import math
 import torch
 
 from image2sphere.distributions.fourier import fourier_grid_nll, fourier_grid_set_nll
+from image2sphere.nn.base import check_rotation_set
 from image2sphere.nn.i2s import I2S
 from image2sphere.so3.wigner import check_lmax, flat_wigner, so3_layout
 
@@ -92,14 +93,8 @@ class WignerDRegression(I2S):
     ) -> torch.Tensor:
         """:meth:`loss` averaged over each image's equivalent ``rotations (B, M, 3, 3)`` where ``mask (B, M)``:
         the targets of the whole set at once (and one grid normaliser per image)."""
-        if mask.ndim != 2 or rotations.shape != (*mask.shape, 3, 3) or len(output) != len(mask):
-            raise ValueError(
-                f"rotations (B, M, 3, 3) and mask (B, M) must match the output's batch of {len(output)}, "
-                f"got {tuple(rotations.shape)} and {tuple(mask.shape)}"
-            )
+        check_rotation_set(output, rotations, mask)
         real = mask.to(output)
-        if (real.sum(1) == 0).any():
-            raise ValueError("every image needs at least one real rotation in mask")
         from image2sphere.metrics import fill_padding  # here: metrics imports this package's users
 
         target = wigner_target(self.lmax, fill_padding(rotations, mask).detach().to(output))  # [B, M, n]

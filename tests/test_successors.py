@@ -27,22 +27,7 @@ from image2sphere.so3.grid import so3_healpix_grid, so3_healpix_nearest_index
 from image2sphere.so3.groups import rotation_group
 from image2sphere.so3.rotations import geodesic_distance_deg, rotvec_to_matrix
 from image2sphere.so3.wigner import default_dtype, left_translate_so3_coeffs, n_so3_coeffs
-
-
-class _TinyEncoder(torch.nn.Module):
-    """A 4-channel encoder for networks built without a ResNet."""
-
-    out_channels = 4
-
-    def __init__(self):
-        super().__init__()
-        self.conv = torch.nn.Conv2d(3, 4, 3, stride=4)
-
-    def feature_size(self, image_size):
-        return (image_size - 3) // 4 + 1
-
-    def forward(self, x):
-        return self.conv(x)
+from test_mixed_precision import TinyEncoder  # a 4-channel conv stand-in for the ResNet
 
 
 # ------------------------------------------------------------------ Wigner-D regression
@@ -82,7 +67,7 @@ def test_wigner_loss_is_equivariant_and_zero_only_at_the_target():
 
 
 def _wigner_net(**kwargs) -> WignerDRegression:
-    return WignerDRegression(_TinyEncoder(), image_size=16, lmax=2, sphere_channels=4, so3_channels=2,
+    return WignerDRegression(TinyEncoder(), image_size=16, lmax=2, sphere_channels=4, so3_channels=2,
                              harmonic_hidden=4, **kwargs).double()  # fmt: skip
 
 
@@ -241,7 +226,7 @@ def test_flow_samples_follow_its_density_by_a_two_sample_test():
 
 
 def test_flow_network_is_uniform_at_the_start_normalised_and_trained_by_the_exact_nll():
-    net = RotationFlow(_TinyEncoder(), image_size=16, condition_dim=6, blocks=1, hidden=8).double()
+    net = RotationFlow(TinyEncoder(), image_size=16, condition_dim=6, blocks=1, hidden=8).double()
     images = torch.randn(2, 3, 16, 16, dtype=torch.float64)
     output = net(images)
     dist = net.output_distribution(output)

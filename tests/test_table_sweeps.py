@@ -189,11 +189,11 @@ def test_small_sweeps_train_every_setting_on_the_built_in_data_with_one_change_e
 
 def test_small_successors_trains_four_methods_at_one_budget_on_three_sets_and_three_seeds():
     """table=small/successors: I2S, the two methods after it and IPDF, each on the default cube + cone, the
-    icosahedron alone and tetX alone, seeds 0-2 (seed by seed), every job with the same budget (encoder,
+    tetrahedron alone and tetX alone, seeds 0-2 (seed by seed), every job with the same budget (encoder,
     optimiser, schedule, 2 epochs, level-3 test grid); the jobs of one data set differ only in the model."""
     jobs = table_jobs("small/successors")
     runs = [composed_run("small/successors", job, i) for i, job in enumerate(jobs)]
-    sets = {"cube-cone": (["cube", "cone"], None), "icosa": (["icosa"], None), "tetX": (None, "tetX")}
+    sets = {"cube-cone": (["cube", "cone"], None), "tet": (["tet"], None), "tetX": (None, "tetX")}
     seen = {}
     budget = set()
     for run in runs:

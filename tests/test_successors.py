@@ -294,10 +294,32 @@ def test_flow_starts_where_the_expected_gradient_of_a_symmetric_label_vanishes_u
     (and the gradient of the set-averaged loss) is exactly zero, and only the noise of the random
     labels moves the flow off the uniform distribution. A group that keeps an axis (a cone's, here C4)
     has a gradient at the start (docs/methods.md, "Successors at small scale")."""
-    flow = SO3Flow(5, blocks=2, hidden=16).double()
     z = torch.randn(1, 5, dtype=torch.float64)
     R = haar_rotations(1, seed=9)[0]
     S = rotation_group(group).to(torch.float64)
-    (-flow.log_prob(z, (R @ S)[None]).mean()).backward()
-    norm = math.sqrt(sum(p.grad.square().sum().item() for p in flow.parameters() if p.grad is not None))
-    assert (norm < 1e-10) if vanishes else (norm > 1e-2), norm
+    for start in ("identity", "random"):
+        torch.manual_seed(4)
+        flow = SO3Flow(5, blocks=2, hidden=16, start=start).double()
+        (-flow.log_prob(z, (R @ S)[None]).mean()).backward()
+        norm = math.sqrt(sum(p.grad.square().sum().item() for p in flow.parameters() if p.grad is not None))
+        if start == "identity":
+            assert (norm < 1e-10) if vanishes else (norm > 1e-2), norm
+        else:  # the authors' random start is off the saddle for every group
+            assert norm > 1e-2, norm
+
+
+def test_flow_random_start_is_a_normalised_non_uniform_density_and_start_is_checked():
+    """``start="random"`` (PyTorch's default initialisation of every layer, as the authors' code) is a
+    proper density far from uniform at the start: the level-3 grid mean of ``p * pi^2`` is 1 to 1e-2, and
+    its log density spreads over more than 1 nat. Any other ``start`` is refused, naming the key."""
+    torch.manual_seed(5)
+    flow = SO3Flow(5, blocks=2, hidden=16, start="random").double()
+    z = torch.randn(2, 5, dtype=torch.float64)
+    with torch.no_grad():
+        log_p = flow.log_prob(z, so3_healpix_grid(3, dtype=torch.float64))  # [2, 36864]
+    torch.testing.assert_close(log_p.exp().mean(1) * math.pi**2, torch.ones(2, dtype=torch.float64), atol=1e-2, rtol=0)
+    assert (log_p.max(1).values - log_p.min(1).values > 1).all()
+    with pytest.raises(ValueError, match="start must be 'identity' or 'random'"):
+        SO3Flow(5, start="uniform")
+    with pytest.raises(ValueError, match="model.net.start must be"):
+        RotationFlow(TinyEncoder(), image_size=16, condition_dim=6, blocks=1, hidden=8, start="zeros")

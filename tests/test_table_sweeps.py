@@ -190,7 +190,8 @@ def test_small_sweeps_train_every_setting_on_the_built_in_data_with_one_change_e
 def test_small_successors_trains_four_methods_at_one_budget_on_three_sets_and_three_seeds():
     """table=small/successors: I2S, the two methods after it and IPDF, each on the default cube + cone, the
     tetrahedron alone and tetX alone, seeds 0-2 (seed by seed), every job with the same budget (encoder,
-    optimiser, schedule, 2 epochs, level-3 test grid); the jobs of one data set differ only in the model."""
+    optimiser, schedule, 2 epochs, level-3 test grid); the jobs of one data set differ only in the model,
+    and the Wigner-D regression adds the distribution loss, as its authors train it on SYMSOL."""
     jobs = table_jobs("small/successors")
     runs = [composed_run("small/successors", job, i) for i, job in enumerate(jobs)]
     sets = {"cube-cone": (["cube", "cone"], None), "tet": (["tet"], None), "tetX": (None, "tetX")}
@@ -201,6 +202,8 @@ def test_small_successors_trains_four_methods_at_one_budget_on_three_sets_and_th
         assert run.choices["dataset"] == "symsol_rendered"
         name = next(n for n, pair in sets.items() if pair == (flat["dataset.shapes"], flat["dataset.shape"]))
         seen.setdefault((name, flat["seed"]), set()).add(run.choices["model"])
+        if run.choices["model"] == "wigner_regression":  # with the distribution loss, as on SYMSOL
+            assert flat["model.net.distribution_weight"] == 1.0
         groups = tuple(run.choices[g] for g in ("encoder", "optimizer", "scheduler"))
         keys = ("trainer.max_epochs", "eval_grid_level", "model.spread_grid_level", "dataset.batch_size")
         budget.add((*groups, *(flat[k] for k in keys)))
@@ -208,6 +211,8 @@ def test_small_successors_trains_four_methods_at_one_budget_on_three_sets_and_th
     assert seen == {(n, s): methods for n in sets for s in (0, 1, 2)}
     assert budget == {("resnet18", "adam", "step", 2, 3, 3, 32)}
     assert [_flat(r.config)["seed"] for r in runs] == [s for s in (0, 1, 2) for _ in range(12)]  # seed by seed
+    order = ["i2s", "wigner_regression", "rotation_flow", "ipdf"]
+    assert [r.choices["model"] for r in runs] == order * 9  # job 4k + i is method i
 
 
 def test_small_symsol_trains_symsol_one_once_and_each_symsol_two_shape_alone(tmp_path):

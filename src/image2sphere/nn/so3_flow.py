@@ -31,8 +31,11 @@ Conventions (docs/conventions.md#densities)
   ``A`` ``4 x 4`` from ``z``, so ``W`` is always invertible, ``det W = exp(tr A)`` and
   ``W^{-1} = exp(-A)``. Its Jacobian on S^3, hence w.r.t. the Haar measure (S^3 covers SO(3) twice,
   evenly), is ``det W / |W q|^4``.
-* Every layer starts as the identity (its last linear layer at zero): the first prediction is the
-  uniform distribution, as I2S's.
+* ``start="identity"`` (the default): every layer starts as the identity (its last linear layer at
+  zero), so the first prediction is the uniform distribution, as I2S's. ``start="random"``: PyTorch's
+  default initialisation of those layers too, as in the authors' code, so the flow starts as a random
+  non-uniform distribution (docs/methods.md, "Successors at small scale", says why this matters for
+  shapes whose symmetry group keeps no axis).
 
 The layers are exactly invertible in closed form; the paper's variant that averages several Möbius
 transformations in angle space needs a numerical inverse and is not used here (a chain of single
@@ -54,6 +57,12 @@ __all__ = ["MobiusCoupling", "QuaternionAffine", "RotationFlow", "SO3Flow", "mob
 
 #: ``|w| <= W_MAX``: the densest a single Möbius layer can make a circle is ``(1 + W_MAX) / (1 - W_MAX)``
 W_MAX = 0.99
+
+
+def _check_start(start: str) -> str:
+    if start not in ("identity", "random"):
+        raise ValueError(f"start must be 'identity' or 'random', got {start!r}")
+    return start
 
 
 def mobius_circle(x: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -78,9 +87,10 @@ class MobiusCoupling(nn.Module):
         condition_dim: size of the condition vector ``z``.
         hidden: units of the conditioner's hidden layers.
         depth: hidden layers of the conditioner (>= 1).
+        start: ``"identity"`` (last layer at zero) or ``"random"`` (PyTorch's default initialisation).
     """
 
-    def __init__(self, column: int, condition_dim: int, hidden: int = 64, depth: int = 2):
+    def __init__(self, column: int, condition_dim: int, hidden: int = 64, depth: int = 2, start: str = "identity"):
         super().__init__()
         if column not in (0, 1, 2):
             raise ValueError(f"column must be 0, 1 or 2, got {column!r}")
@@ -95,8 +105,9 @@ class MobiusCoupling(nn.Module):
             layers += [nn.Linear(hidden, hidden), nn.ReLU()]
         self.layers = nn.Sequential(*layers)
         self.out = nn.Linear(hidden, 4)  # w (3, projected onto the circle's plane), phi
-        nn.init.zeros_(self.out.weight)
-        nn.init.zeros_(self.out.bias)
+        if _check_start(start) == "identity":
+            nn.init.zeros_(self.out.weight)
+            nn.init.zeros_(self.out.bias)
 
     def parameters_at(self, z: torch.Tensor, axis: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``w (B, K, 3)`` (in the plane orthogonal to ``axis``, ``|w| < W_MAX``) and ``phi (B, K)`` for
@@ -137,14 +148,16 @@ class QuaternionAffine(nn.Module):
 
     Args:
         condition_dim: size of the condition vector ``z``; ``A`` is a linear function of it (zero at
-            the start: the identity).
+            the start with ``start="identity"``: the identity).
+        start: ``"identity"`` or ``"random"`` (PyTorch's default initialisation of the linear map).
     """
 
-    def __init__(self, condition_dim: int):
+    def __init__(self, condition_dim: int, start: str = "identity"):
         super().__init__()
         self.to_matrix = nn.Linear(condition_dim, 16)
-        nn.init.zeros_(self.to_matrix.weight)
-        nn.init.zeros_(self.to_matrix.bias)
+        if _check_start(start) == "identity":
+            nn.init.zeros_(self.to_matrix.weight)
+            nn.init.zeros_(self.to_matrix.bias)
 
     def _map(self, R: torch.Tensor, z: torch.Tensor, inverse: bool) -> tuple[torch.Tensor, torch.Tensor]:
         A = self.to_matrix(z).reshape(-1, 4, 4)  # [B, 4, 4]
@@ -174,16 +187,19 @@ class SO3Flow(nn.Module):
         condition_dim: size of the condition vector ``z`` ``(B, F)``.
         blocks: number of (3 couplings + 1 affine) blocks.
         hidden, depth: each coupling's conditioner MLP.
+        start: ``"identity"`` (the uniform distribution at the start) or ``"random"`` (module docstring).
     """
 
-    def __init__(self, condition_dim: int, blocks: int = 4, hidden: int = 64, depth: int = 2):
+    def __init__(
+        self, condition_dim: int, blocks: int = 4, hidden: int = 64, depth: int = 2, start: str = "identity"
+    ):
         super().__init__()
         check_int("condition_dim", condition_dim, 1)
         check_int("blocks", blocks, 1)
         layers: list[nn.Module] = []
         for _ in range(blocks):
-            layers += [MobiusCoupling(c, condition_dim, hidden, depth) for c in range(3)]
-            layers.append(QuaternionAffine(condition_dim))
+            layers += [MobiusCoupling(c, condition_dim, hidden, depth, start) for c in range(3)]
+            layers.append(QuaternionAffine(condition_dim, start))
         self.layers = nn.ModuleList(layers)
         self.condition_dim = condition_dim
         self.hidden = hidden
@@ -232,7 +248,7 @@ class RotationFlow(PoseNetwork):
         encoder, image_size, num_classes, input_scaling: as every pose network (:class:`PoseNetwork`).
         condition_dim: the pooled features are mapped to this many numbers (linear + ReLU) before
             they condition every layer; ``0``: the pooled features themselves.
-        blocks, hidden, depth: the flow (:class:`SO3Flow`).
+        blocks, hidden, depth, start: the flow (:class:`SO3Flow`).
     """
 
     def __init__(
@@ -243,16 +259,19 @@ class RotationFlow(PoseNetwork):
         blocks: int = 4,
         hidden: int = 64,
         depth: int = 2,
+        start: str = "identity",
         num_classes: int = 0,
         input_scaling: str = "imagenet",
     ):
+        if start not in ("identity", "random"):
+            raise ValueError(f"model.net.start must be 'identity' or 'random', got {start!r}")
         super().__init__(encoder, image_size, num_classes, input_scaling)
         check_int("condition_dim", condition_dim, 0)
         if condition_dim:
             self.condition = nn.Sequential(nn.Linear(self.feature_channels, condition_dim), nn.ReLU())
         else:
             self.condition, condition_dim = nn.Identity(), self.feature_channels
-        self.flow = SO3Flow(condition_dim, blocks, hidden, depth)
+        self.flow = SO3Flow(condition_dim, blocks, hidden, depth, start)
 
     def forward(self, images: torch.Tensor, class_index: torch.Tensor | None = None) -> torch.Tensor:
         """Images ``[B, 3, H, W]`` (and class indices ``[B]``) -> conditions ``[B, F]``."""

@@ -190,9 +190,7 @@ class SO3Flow(nn.Module):
         start: ``"identity"`` (the uniform distribution at the start) or ``"random"`` (module docstring).
     """
 
-    def __init__(
-        self, condition_dim: int, blocks: int = 4, hidden: int = 64, depth: int = 2, start: str = "identity"
-    ):
+    def __init__(self, condition_dim: int, blocks: int = 4, hidden: int = 64, depth: int = 2, start: str = "identity"):
         super().__init__()
         check_int("condition_dim", condition_dim, 1)
         check_int("blocks", blocks, 1)

@@ -59,9 +59,9 @@ __all__ = ["MobiusCoupling", "QuaternionAffine", "RotationFlow", "SO3Flow", "mob
 W_MAX = 0.99
 
 
-def _check_start(start: str) -> str:
+def _check_start(start: str, name: str = "start") -> str:
     if start not in ("identity", "random"):
-        raise ValueError(f"start must be 'identity' or 'random', got {start!r}")
+        raise ValueError(f"{name} must be 'identity' or 'random', got {start!r}")
     return start
 
 
@@ -261,8 +261,7 @@ class RotationFlow(PoseNetwork):
         num_classes: int = 0,
         input_scaling: str = "imagenet",
     ):
-        if start not in ("identity", "random"):
-            raise ValueError(f"model.net.start must be 'identity' or 'random', got {start!r}")
+        _check_start(start, "model.net.start")
         super().__init__(encoder, image_size, num_classes, input_scaling)
         check_int("condition_dim", condition_dim, 0)
         if condition_dim:

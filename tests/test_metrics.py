@@ -11,12 +11,15 @@ from scipy.spatial.transform import Rotation
 from conftest import haar_rotations
 from image2sphere.distributions import LOG_UNIFORM_DENSITY, SO3Distribution
 from image2sphere.metrics import (
+    check_target_mask,
+    check_targets,
     log_density_from_grid_logits,
     log_likelihood_pairs,
     min_angular_error_deg,
     spread_deg,
     summarize_pose_metrics,
 )
+from image2sphere.nn.base import check_rotation_set
 from image2sphere.so3 import (
     dense_grid_logits,
     n_so3_coeffs,
@@ -137,3 +140,26 @@ def test_summary_per_class_and_mean_over_classes():
 def test_bad_targets_are_rejected(targets, mask, match):
     with pytest.raises(ValueError, match=match):
         min_angular_error_deg(torch.eye(3).expand(2, 3, 3), targets, mask)
+
+
+def test_metrics_and_set_losses_check_the_padding_by_one_rule():
+    """:func:`check_target_mask` is the rule of both :func:`check_targets` (metrics) and
+    :func:`check_rotation_set` (set losses): the masks the loaders build pass (SYMSOL's ``arange(M) < count``,
+    all True for one-label sets), and a set whose first entry is padding is refused by both with the same
+    message even when a later entry is real (``fill_padding`` would read the padding as the image's rotation)."""
+    targets = haar_rotations(12, seed=3).reshape(3, 4, 3, 3)
+    output = torch.zeros(3, 5)
+    symsol = torch.arange(4) < torch.tensor([1, 3, 4])[:, None]  # [3, 4]
+    for mask in (symsol, torch.ones(3, 4, dtype=torch.bool)):
+        assert check_targets(targets, mask, 3) is mask
+        check_rotation_set(output, targets, mask)
+    checks = (
+        check_target_mask,
+        lambda m: check_targets(targets, m, 3),
+        lambda m: check_rotation_set(output, targets, m),
+    )
+    for check in checks:
+        with pytest.raises(ValueError, match=r"mask\[:, 0\] must be True"):
+            check(symsol.flip(1))  # the real rotations after the padding
+        with pytest.raises(ValueError, match="at least one real rotation"):
+            check(torch.zeros(3, 4, dtype=torch.bool))

@@ -19,7 +19,7 @@ from scipy.stats import chi2_contingency
 from conftest import haar_rotations
 from image2sphere.distributions.base import LOG_UNIFORM_DENSITY
 from image2sphere.distributions.flow import FlowDistribution
-from image2sphere.distributions.fourier import SO3Distribution, fourier_grid_nll
+from image2sphere.distributions.fourier import SO3Distribution, fourier_grid_nll, fourier_grid_set_nll
 from image2sphere.nn.base import mean_loss_over_set
 from image2sphere.nn.so3_flow import MobiusCoupling, QuaternionAffine, RotationFlow, SO3Flow, mobius_circle
 from image2sphere.nn.wigner_regression import WignerDRegression, wigner_mse, wigner_target
@@ -250,6 +250,33 @@ def test_flow_network_is_uniform_at_the_start_normalised_and_trained_by_the_exac
     )
     with pytest.raises(ValueError, match="rotation must have shape"):
         net.loss(output, R[:3])
+
+
+def test_set_losses_refuse_a_padded_first_rotation_and_take_it_reordered():
+    """A set whose first entry is padding (NaN here) with a real entry after it: the Wigner-D regression's,
+    the flow's and I2S's set losses (which read padding as the image's first rotation) and the generic mean
+    over the set refuse it naming the rule (mask[:, 0] must be True), rather than reading the NaN as a
+    rotation; the same set with its real rotations first gives a finite loss."""
+    R = haar_rotations(4, seed=9).reshape(2, 2, 3, 3)
+    mask = torch.tensor([[False, True], [True, True]])
+    padded = R.masked_fill(~mask[..., None, None], math.nan)
+    wigner = _wigner_net()
+    flow = RotationFlow(TinyEncoder(), image_size=16, condition_dim=6, blocks=1, hidden=8).double()
+    with torch.no_grad():
+        for p in flow.flow.parameters():
+            p.normal_(0, 0.2)
+    torch.manual_seed(3)
+    c = torch.randn(2, n_so3_coeffs(2), dtype=torch.float64)
+    losses = {
+        "wigner": lambda r, m: wigner.set_loss(c, r, m, 1),
+        "flow": lambda r, m: flow.set_loss(flow(torch.randn(2, 3, 16, 16, dtype=torch.float64)), r, m, 1),
+        "mean_loss_over_set": lambda r, m: mean_loss_over_set(wigner.loss, c, r, m, 1),
+        "i2s": lambda r, m: fourier_grid_set_nll(c, 2, r, m, 1),
+    }
+    for name, set_loss in losses.items():
+        with pytest.raises(ValueError, match=r"mask\[:, 0\] must be True"):
+            set_loss(padded, mask)
+        assert torch.isfinite(set_loss(padded.flip(1), mask.flip(1))).all(), name
 
 
 def test_implicit_density_runs_the_network_once_per_query_without_gradients():

@@ -55,13 +55,15 @@ def fourier_grid_set_nll(
     coeffs: torch.Tensor, lmax: int, rotations: torch.Tensor, mask: torch.Tensor, level: int
 ) -> torch.Tensor:
     """:func:`fourier_grid_nll` averaged over each image's equivalent rotations ``(B,)``: ``rotations
-    (B, M, 3, 3)``, real where ``mask (B, M)``; ``logsumexp_i f(R_i) - mean_k f(R_k)`` with the grid
+    (B, M, 3, 3)``, real where ``mask (B, M)`` (the first of each image among them,
+    :func:`~image2sphere.metrics.check_target_mask`); ``logsumexp_i f(R_i) - mean_k f(R_k)`` with the grid
     point nearest each ``R_k``. The normaliser is computed once per image, not once per rotation."""
+    from image2sphere.metrics import check_target_mask, fill_padding  # here: metrics imports this package
+
+    check_target_mask(mask)
     B, M = mask.shape
     ev = get_grid_evaluator(lmax, check_streamed_level(level), coeffs.dtype, coeffs.device)
     real = mask.to(coeffs.device)
-    from image2sphere.metrics import fill_padding  # here: metrics imports this package
-
     filled = fill_padding(rotations, mask)  # padding (possibly NaN) read as the image's first rotation
     index = so3_healpix_nearest_index(filled.detach().reshape(B * M, 3, 3), level).reshape(B, M).to(coeffs.device)
     values = ev.logits_at(coeffs, index)  # [B, M]

@@ -45,6 +45,7 @@ from image2sphere.checks import check_int
 from image2sphere.data.common import IMAGENET_MEAN, IMAGENET_STD
 from image2sphere.distributions.base import PoseDistribution
 from image2sphere.distributions.fourier import SO3Distribution, fourier_grid_nll
+from image2sphere.metrics import check_target_mask
 from image2sphere.precision import encoder_autocast, float32_methods, float32_region, to_float32
 
 __all__ = ["INPUT_SCALINGS", "Float32Head", "PoseNetwork", "check_input_scaling", "method_of", "unscale_imagenet"]
@@ -186,14 +187,14 @@ class PoseNetwork(Float32Head):
 
 def check_rotation_set(output: torch.Tensor, rotations: torch.Tensor, mask: torch.Tensor) -> None:
     """``ValueError`` unless ``rotations (B, M, 3, 3)`` and ``mask (B, M)`` match the ``B`` rows of ``output``
-    and every image has at least one real rotation (the arguments of :meth:`PoseNetwork.set_loss`)."""
+    and every image's first rotation is real (:func:`~image2sphere.metrics.check_target_mask`, the rule of
+    the metrics too): the arguments of :meth:`PoseNetwork.set_loss`."""
     if mask.ndim != 2 or rotations.shape != (*mask.shape, 3, 3) or len(output) != len(mask):
         raise ValueError(
             f"rotations (B, M, 3, 3) and mask (B, M) must match the output's batch of {len(output)}, "
             f"got {tuple(rotations.shape)} and {tuple(mask.shape)}"
         )
-    if (mask.sum(1) == 0).any():
-        raise ValueError("every image needs at least one real rotation in mask")
+    check_target_mask(mask)
 
 
 def mean_loss_over_set(
@@ -204,7 +205,7 @@ def mean_loss_over_set(
     grid_level: int,
 ) -> torch.Tensor:
     """``(B,)``: the mean of ``loss(output, rotation, grid_level)`` over the rotations of each image
-    (``rotations (B, M, 3, 3)``, real where ``mask (B, M)``, at least one per image), by evaluating
+    (``rotations (B, M, 3, 3)``, real where ``mask (B, M)``, the first of each image among them), by evaluating
     ``loss`` once per real rotation on its image's output (the rows of ``output`` repeated), a batch of
     ``B`` rows at a time: as much memory as one ordinary step, and ``K / B`` times its loss's time for
     ``K`` real rotations (a cone's 360 or a cylinder's 720 per image make it that much slower)."""

@@ -113,6 +113,33 @@ def test_loader_workers_ignore_a_signal_from_outside_and_obey_their_ranks_termin
 
 
 # ------------------------------------------------------------------ the decision on two processes (gloo)
+def _two_ranks(script: str, *args: str, timeout: float = 180, env: dict | None = None) -> list:
+    """Run ``script`` as ranks 0 and 1 of a gloo group (``sys.argv``: rank, port, ``args``), with PyTorch's
+    collective desync check on (``TORCH_DISTRIBUTED_DEBUG=DETAIL``); ``[(returncode, stdout, stderr,
+    seconds)]`` per rank, nothing left running whatever happens."""
+    import subprocess
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {**os.environ, "TORCH_DISTRIBUTED_DEBUG": "DETAIL", **(env or {})}
+    start = time.monotonic()
+    procs = [subprocess.Popen([sys.executable, "-c", script, str(r), str(port), *args], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True, start_new_session=True, env=env)
+             for r in (0, 1)]  # fmt: skip
+    results = []
+    try:
+        for p in procs:
+            out, err = p.communicate(timeout=timeout)
+            results.append((p.returncode, out, err, time.monotonic() - start))
+    finally:
+        for p in procs:  # nothing left behind, whatever happened
+            if group_alive(p.pid):
+                os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    return results
+
+
 RANK_SCRIPT = """
 import json, os, signal, sys, time
 import torch
@@ -120,40 +147,145 @@ from image2sphere.training import stop
 rank, port, rounds = int(sys.argv[1]), sys.argv[2], json.loads(sys.argv[3])
 torch.distributed.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=2)
 decided = []
-for requests in rounds:  # one round per entry: each rank's request (or None)
+for requests in rounds:  # one round per entry: each rank's signals, in order
     with stop.handle_signals(requeue_signals=[signal.SIGUSR1]):
-        if requests[rank] is not None:
-            os.kill(os.getpid(), requests[rank])
+        for signum in requests[rank]:
+            os.kill(os.getpid(), signum)
             time.sleep(0.05)
         decided.append(stop.decide())
+stop.close_decisions()
 torch.distributed.destroy_process_group()
 print(json.dumps(decided))
 """
 
 
 @pytest.mark.slow
-def test_every_rank_decides_the_strongest_request_of_any_rank(tmp_path):
-    """Rank 0 alone asked, rank 1 alone asked, nobody, and two different signals (the requeue signal wins
-    over SIGTERM, SIGTERM over Ctrl-C): both ranks come to the same answer each time."""
+def test_every_rank_decides_the_strongest_request_of_any_rank():
+    """Rank 0 alone asked, rank 1 alone asked, nobody, two different signals on two ranks (the requeue signal
+    wins over SIGTERM, SIGTERM over Ctrl-C) and the same two on one rank: every rank comes to the same
+    answer each time, and one rank with SIGTERM then the requeue signal decides as two ranks with one each."""
     import json
+
+    T, I, U = int(signal.SIGTERM), int(signal.SIGINT), int(signal.SIGUSR1)
+    rounds = [([T], []), ([], [T]), ([], []), ([T], [U]), ([I], [T]), ([T, U], [])]
+    results = _two_ranks(RANK_SCRIPT, json.dumps(rounds))
+    assert [r[0] for r in results] == [0, 0], [r[2][-2000:] for r in results]
+    assert json.loads(results[0][1]) == json.loads(results[1][1]) == [T, T, None, U, T, U]
+
+
+DECISION_SCRIPT = """
+import datetime, json, os, signal, sys, time
+from types import SimpleNamespace
+import torch
+import torch.distributed as dist
+from image2sphere.training import stop
+rank, port = int(sys.argv[1]), sys.argv[2]
+dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=2,
+                        timeout=datetime.timedelta(seconds=20))
+trainer = SimpleNamespace(strategy=SimpleNamespace(_timeout=datetime.timedelta(seconds=3)))
+stop.open_decisions(trainer)  # as Lightning's setup does, at the same point on both ranks
+decided = []
+with stop.handle_signals():
+    for epoch in range(3):
+        metric = torch.ones(1)
+        # the model's group: a metric that rank 0 syncs before the epoch's end (its progress bar) and the
+        # other rank after it (its logger), as Lightning's lazily computed epoch metrics are
+        if rank == 0:
+            dist.barrier()
+            dist.all_reduce(metric)
+        if rank == 1 and epoch == 1:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)
+        stop.decide(trainer, read="none", where=f"the end of epoch {epoch}")
+        if rank == 1:
+            time.sleep(0.5)  # the other rank reaches its next point long before this one
+            dist.barrier()
+            dist.all_reduce(metric)
+        dist.all_reduce(torch.ones(3))  # the next training step's gradients
+        decided.append(stop.decide(trainer, read="earlier", where=f"after batch 0 of epoch {epoch + 1}"))
+    print(json.dumps(decided), flush=True)
+    # a point that one rank never reaches: the other's decision ends with an error naming it
+    start = time.monotonic()
+    if rank == 0:
+        try:
+            stop.decide(trainer, read="all", where="the point rank 1 skips")
+        except stop.DecisionTimeout as e:
+            print(f"timeout after {time.monotonic() - start:.1f} s: {e}", flush=True)
+    else:
+        time.sleep(8)
+os._exit(0)
+"""
+
+
+@pytest.mark.slow
+def test_decisions_never_meet_the_models_collectives_and_a_missing_rank_is_an_error():
+    """The ranks' decisions run on a group of their own: a metric synced on rank 0 before an epoch's end and
+    on rank 1 after it (what hung a DDP run with the progress bar on) meets its twin, the decision of the
+    epoch in which rank 1 was signalled comes at the next epoch's first batch on both ranks, and a point
+    that one rank never reaches ends the other's wait within the group's timeout (3 s), naming the point,
+    with PyTorch's desync check on."""
+    import json
+
+    results = _two_ranks(DECISION_SCRIPT, timeout=120)
+    assert [r[0] for r in results] == [0, 0], [r[2][-3000:] for r in results]
+    T = int(signal.SIGTERM)
+    decided = [json.loads(r[1].splitlines()[0]) for r in results]
+    assert decided[0] == decided[1] == [None, T, T]  # a request stays once made
+    line = results[0][1].splitlines()[1]
+    assert "timeout after" in line and "the point rank 1 skips" in line and "trainer.strategy.timeout" in line
+    assert float(line.split("timeout after ")[1].split(" s")[0]) < 15
+
+
+HANG_SCRIPT = """
+import datetime, os, sys, time
+import torch
+import torch.distributed as dist
+from image2sphere.training import stop
+rank, port = int(sys.argv[1]), sys.argv[2]
+dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=2,
+                        timeout=datetime.timedelta(seconds=120))
+if rank == 0:
+    with stop.handle_signals(grace=3):
+        print("waiting", flush=True)
+        dist.barrier()  # rank 1 never comes: no Python code runs here until the group's timeout
+else:
+    time.sleep(60)
+"""
+
+
+@pytest.mark.slow
+def test_a_sigterm_during_a_hung_collective_ends_the_process_within_the_grace():
+    """Rank 0 waits in a barrier that rank 1 never joins (for the group's 120 s timeout); a SIGTERM cannot be
+    handled there, yet the process ends 3 s after it (stop_grace_s) with 143 and every thread's stack."""
     import subprocess
+    import threading
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    T, I, U = int(signal.SIGTERM), int(signal.SIGINT), int(signal.SIGUSR1)
-    rounds = json.dumps([(T, None), (None, T), (None, None), (T, U), (I, T)])
-    procs = [subprocess.Popen([sys.executable, "-c", RANK_SCRIPT, str(r), str(port), rounds], stdout=subprocess.PIPE,
-                              text=True, start_new_session=True) for r in (0, 1)]  # fmt: skip
+    env = {**os.environ, "TORCH_DISTRIBUTED_DEBUG": "DETAIL"}
+    procs = [subprocess.Popen([sys.executable, "-c", HANG_SCRIPT, str(r), str(port)], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True, start_new_session=True, env=env)
+             for r in (0, 1)]  # fmt: skip
     try:
-        outs = [p.communicate(timeout=180)[0] for p in procs]
+        assert procs[0].stdout.readline().strip() == "waiting"
+        time.sleep(1.0)  # inside the barrier
+        sent = time.monotonic()
+        procs[0].send_signal(signal.SIGTERM)
+        timer = threading.Timer(60, procs[0].kill)  # only if the watchdog failed
+        timer.start()
+        _, err = procs[0].communicate()
+        timer.cancel()
+        seconds = time.monotonic() - sent
     finally:
-        for p in procs:  # nothing left behind, whatever happened
+        for p in procs:
             if group_alive(p.pid):
                 os.killpg(p.pid, signal.SIGKILL)
             p.wait()
-    assert [p.returncode for p in procs] == [0, 0], outs
-    assert json.loads(outs[0]) == json.loads(outs[1]) == [T, T, None, U, T]
+    assert procs[0].returncode == 128 + signal.SIGTERM, err[-3000:]
+    assert 2.5 < seconds < 15, seconds
+    assert "SIGTERM was received 3 s ago" in err and "stop_grace_s" in err
+    assert "barrier" in err  # where the main thread was
 
 
 # ------------------------------------------------------------------ Lightning's own handling switched off
@@ -213,12 +345,47 @@ def test_sigterm_inside_the_optimizer_step_stops_after_that_batch_with_its_check
     assert saved["global_step"] == 6 and batches_done_in_epoch(saved) == 2
 
 
-def test_sigterm_in_an_epochs_last_batch_stops_at_its_end_after_validation(tmp_path):
+def test_sigterm_in_an_epochs_last_batch_stops_after_its_validation_and_the_next_batch(tmp_path):
+    """An epoch's end only sends its request (a stop there would write last.ckpt while ranks may differ in
+    the metrics Lightning has synced): the stop comes after the next epoch's first batch."""
     e, module = _fit(tmp_path, SignalAt("forward_backward", occurrence=4))  # epoch 0's last batch
-    assert e.epoch == 0 and e.step == 4
-    assert module.validated == 4  # the epoch's validation ran before the stop
+    assert e.epoch == 1 and e.step == 5
+    assert module.validated == 4  # epoch 0's validation ran before the stop
     saved = torch.load(e.checkpoint, weights_only=True)
-    assert batches_done_in_epoch(saved) == 0  # a whole epoch: the resumed run starts epoch 1
+    assert saved["global_step"] == 5 and batches_done_in_epoch(saved) == 1  # resumes within epoch 1
+
+
+def test_one_process_keeps_its_strongest_request_as_the_ranks_combine_theirs():
+    """SIGTERM then the requeue signal on one rank decides as the two signals on two ranks do: requeue."""
+    with stop.handle_signals(requeue_signals=[signal.SIGUSR1]):
+        _deliver(signal.SIGTERM)
+        _deliver(signal.SIGUSR1)
+        assert stop.requested() == signal.SIGUSR1 and stop.decide() == signal.SIGUSR1
+        _deliver(signal.SIGTERM)  # weaker than what is recorded: kept as it was
+        assert stop.requested() == signal.SIGUSR1
+
+
+def test_a_nested_block_keeps_the_outer_request_and_handlers():
+    before = signal.getsignal(signal.SIGUSR2)
+    with stop.handle_signals():
+        outer = signal.getsignal(signal.SIGTERM)
+        _deliver(signal.SIGTERM)
+        with stop.handle_signals(requeue_signals=[signal.SIGUSR2]):
+            assert stop.requested() == signal.SIGTERM  # not forgotten by the inner block
+            _deliver(signal.SIGUSR2)
+            assert stop.decide() == signal.SIGUSR2
+        assert signal.getsignal(signal.SIGUSR2) is before  # the inner block's own signal given back
+        assert signal.getsignal(signal.SIGTERM) is outer  # the outer block still handles SIGTERM
+        assert stop.requested() == signal.SIGUSR2
+    assert signal.getsignal(signal.SIGTERM) is not outer
+
+
+def test_decide_refuses_an_unknown_read_mode():
+    with pytest.raises(ValueError, match="read must be one of all, earlier, none"):
+        stop.decide(read="later")
+    with pytest.raises(ValueError, match="stop_grace_s"):
+        with stop.handle_signals(grace=0):
+            pass
 
 
 def test_submitits_requeue_handler_runs_after_last_ckpt_is_written_not_inside_the_step(tmp_path):

@@ -114,6 +114,9 @@ def ddp_children_run_this_job() -> Iterator[None]:
         # the next job of the sweep starts its own ranks: this job's process group (its other ranks have
         # exited) and the variables Lightning's launcher set for it must not carry over
         if torch.distributed.is_available() and torch.distributed.is_initialized():
+            from image2sphere.training.stop import close_decisions  # (stop imports this module)
+
+            close_decisions()
             torch.distributed.destroy_process_group()
         for name, value in environment.items():
             if value is None:

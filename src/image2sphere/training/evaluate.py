@@ -31,7 +31,13 @@ from image2sphere.training.checkpoint import AtomicCheckpointIO, CheckpointError
 from image2sphere.training.cluster import ddp_children_run_this_job
 from image2sphere.training.pipeline import finish_loggers, fit_recalibration_on, instantiate_list
 from image2sphere.training.run_config import check_eval_config, command_line, override_key
-from image2sphere.training.stop import StopRequested, exit_after_stop, handle_signals, use_flag_only_signals
+from image2sphere.training.stop import (
+    DEFAULT_GRACE_S,
+    StopRequested,
+    exit_after_stop,
+    handle_signals,
+    use_flag_only_signals,
+)
 
 __all__ = ["evaluate", "recalibrated_path"]
 
@@ -116,7 +122,8 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     elif module.recalibration is not None:
         log.info("Recalibration stored in %s: %s", cfg.ckpt_path, module.recalibration.describe())
     start = time.perf_counter()
-    with ddp_children_run_this_job(), handle_signals():  # in a multirun job, the other DDP ranks start as this job
+    # in a multirun job, the other DDP ranks start as this job
+    with ddp_children_run_this_job(), handle_signals(grace=cfg.get("stop_grace_s", DEFAULT_GRACE_S)):
         try:
             trainer.test(model=module, datamodule=datamodule)
         except StopRequested as e:

@@ -33,6 +33,7 @@ from image2sphere.training.cluster import (
 from image2sphere.training.module import NonFiniteLossError
 from image2sphere.training.run_config import check_train_config, describe_run, protocol_settings, resume_config
 from image2sphere.training.stop import (
+    DEFAULT_GRACE_S,
     StopRequested,
     TrainingInterrupted,
     decide_or_raise,
@@ -69,7 +70,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     Ctrl-C, SIGTERM and SLURM's requeue signal only record a request while it runs; the ranks decide
     together where to stop (:mod:`image2sphere.training.stop`).
     """
-    with ddp_children_run_this_job(), handle_signals(requeue_signals()):
+    with ddp_children_run_this_job(), handle_signals(requeue_signals(), cfg.get("stop_grace_s", DEFAULT_GRACE_S)):
         return _train(cfg)
 
 

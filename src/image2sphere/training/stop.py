@@ -4,16 +4,44 @@ process and on every rank of a DDP run.
 The rule
 --------
 * A signal handler only **records** the request (:func:`requested`); it never runs a collective, writes
-  a file or raises (except a second Ctrl-C, which stops at once as Python does by default).
-* The ranks **decide together** (:func:`decide`, one all-reduce of every rank's request) at fixed points
-  that every rank passes the same number of times: when fitting starts (after the process group
-  exists), when training starts (after the sanity check), at the end of every training batch (but an
-  epoch's last, whose epoch end decides after its validation) and of every training epoch, before the
-  recalibration, before the test and after every test batch. When any
-  rank was asked, all of them stop at that point: in training after writing ``last.ckpt``
-  (:class:`~image2sphere.training.checkpoint.EpochCheckpoint`), in the test without writing anything.
-* The validation pass in progress is finished first (a stop in its middle would make the resumed run
-  differ from the uninterrupted one); its length bounds how late a stop can come.
+  a file or raises (except a second Ctrl-C, which stops at once as Python does by default). A process
+  keeps the strongest request it received (the requeue signal over SIGTERM over Ctrl-C), the same order
+  in which the ranks combine theirs, so one rank that received two signals decides as two ranks that
+  received one each.
+* The ranks **decide together** (:func:`decide`) at fixed points that every rank passes the same number
+  of times, in the same order: when fitting and when training starts, at the end of every training batch
+  (but an epoch's last), at the end of every training epoch, before the recalibration, before the test,
+  after every test batch and at the test's end. When any rank was asked, all of them stop at the same
+  point: in training after writing ``last.ckpt`` (:class:`~image2sphere.training.checkpoint.EpochCheckpoint`),
+  in the test without writing anything.
+* **Why the ranks can never wait for each other in a mismatched collective.** The decisions travel on a
+  process group of their own (gloo, :class:`_Decisions`), not on the one Lightning and the model use, and
+  a thread of each rank runs them. What Lightning synchronises lazily on one rank (rank 0's progress bar
+  computes the epoch's synced metrics in its own hook; the other ranks do it later, in the logger's epoch
+  end or in the checkpoint callback) therefore never meets a decision: the main group sees the same
+  collectives in the same order on every rank whatever callbacks, loggers and progress bars run, and the
+  decision group sees one all-reduce per point, which every rank passes equally often. Waiting is
+  bounded as well: in training a point only *reads* the decisions of the points before it (``read=
+  "earlier"``: by then every rank has passed those, since a training step's gradient all-reduce lies
+  between any two of them), and an epoch's end only *sends* (``read="none"``), so that no rank ever
+  waits there while another is still inside the lazily synced epoch end. The points that read their own
+  decision at once (``read="all"``: before the recalibration, before the test, the test's end) come after
+  every collective of the stage before them on every rank. The test gives every rank the same number of
+  batches (:class:`~image2sphere.data.loading.ShardSampler` pads the shorter shares with empty slots), so
+  its per-batch points match as well.
+* **Where a stop lands.** A request is acted on at the first point that reads it: after the batch in
+  progress, or, when it came in an epoch's last batch, its validation or its end, after the next epoch's
+  first batch (its ``last.ckpt`` resumes exactly as any mid-epoch checkpoint; after the last epoch, the
+  run stops after training). The validation pass in progress is finished first (a stop in its middle
+  would make the resumed run differ from the uninterrupted one).
+* **Bounds.** A decision that does not come within the process group's timeout (the DDP strategy's
+  ``timeout``, ``trainer.strategy.timeout`` in ``conf/trainer/ddp.yaml``) ends the run with an error that
+  names the point this rank waited at (:class:`DecisionTimeout`); every other collective is bounded by the
+  same timeout in torch itself. After a signal the process ends within ``grace`` seconds
+  (:func:`handle_signals`, ``stop_grace_s`` in the run's config) even when it is stuck where no Python
+  code runs (inside a collective that never completes): a watchdog thread learns of the signal from
+  Python's wakeup file descriptor, and when no stop has ended the process by then it prints every
+  thread's stack and exits with 128 + the signal number.
 * Lightning's own signal handling is switched off (:class:`FlagOnlySignalConnector`): its SIGTERM handler
   broadcasts from inside the handler, wherever the main thread was interrupted (in ``optimizer.step``,
   say), while the other ranks may be in another collective, which deadlocked DDP runs; and each rank
@@ -30,12 +58,17 @@ and shuts them down (:func:`image2sphere.data.workers.obey_sigterm_from_parent_o
 from __future__ import annotations
 
 import contextlib
+import datetime
+import faulthandler
 import logging
 import os
+import queue
 import re
+import select
 import signal
 import subprocess
 import threading
+import time
 from collections.abc import Iterable, Iterator
 from typing import Any, NoReturn
 
@@ -47,12 +80,16 @@ from lightning.pytorch.trainer.connectors.signal_connector import _SignalConnect
 from image2sphere.training.cluster import is_secondary_rank, slurm_job_id
 
 __all__ = [
+    "DEFAULT_GRACE_S",
+    "DecisionTimeout",
     "FlagOnlySignalConnector",
     "StopOnRequest",
     "StopRequested",
     "TrainingInterrupted",
+    "close_decisions",
     "decide",
     "exit_after_stop",
+    "open_decisions",
     "handle_signals",
     "requeue_job",
     "requeue_signals",
@@ -62,24 +99,36 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-# A request's weight when two ranks were asked for different things: the requeue signal (save and come
-# back) wins over SIGTERM (save and end), which wins over Ctrl-C.
+# A request's weight, in one process and across ranks alike: the requeue signal (save and come back) over
+# SIGTERM (save and end) over Ctrl-C.
 _PRIORITY = {signal.SIGINT: 1, signal.SIGTERM: 2}
 _REQUEUE_PRIORITY = 3
+#: seconds after a signal within which the process ends, stopped or not (``stop_grace_s``)
+DEFAULT_GRACE_S = 300.0
+_READ = ("all", "earlier", "none")
 
 
 class _Request:
-    """What this process was asked (the first signal counts), written by the handlers only."""
+    """What this process was asked (the strongest signal counts), written by the handlers only."""
 
     def __init__(self) -> None:
         self.signum: int | None = None
+        self.sigints = 0
         self.requeue_signums: frozenset[int] = frozenset()
         self.previous: dict[int, Any] = {}  # the handlers that were in place before the run's
+        self.depth = 0  # nested handle_signals blocks
+
+    def weight(self, signum: int) -> int:
+        if signum in self.requeue_signums:
+            return _REQUEUE_PRIORITY
+        return _PRIORITY.get(signum, _PRIORITY[signal.SIGTERM])
 
     def record(self, signum: int, _frame: Any) -> None:
-        if signum == signal.SIGINT and self.signum == signal.SIGINT:
-            raise KeyboardInterrupt  # the second Ctrl-C: stop at once
-        if self.signum is None:
+        if signum == signal.SIGINT:
+            self.sigints += 1
+            if self.sigints > 1:
+                raise KeyboardInterrupt  # the second Ctrl-C: stop at once
+        if self.signum is None or self.weight(signum) > self.weight(self.signum):
             self.signum = int(signum)
         # one line, written with a single system call (no lock that the interrupted code may hold)
         name = signal.Signals(signum).name
@@ -88,12 +137,9 @@ class _Request:
         with contextlib.suppress(OSError):
             os.write(2, f"[rank {rank}] {name} received: stopping at the next safe point{again}\n".encode())
 
-    def priority(self) -> int:
-        if self.signum is None:
-            return 0
-        if self.signum in self.requeue_signums:
-            return _REQUEUE_PRIORITY
-        return _PRIORITY.get(self.signum, _PRIORITY[signal.SIGTERM])
+    def code(self) -> int:
+        """``priority * 256 + signal number`` (0: nothing asked), what the ranks combine with a maximum."""
+        return 0 if self.signum is None else self.weight(self.signum) * 256 + self.signum
 
 
 _REQUEST = _Request()
@@ -118,20 +164,35 @@ def requeue_signals() -> set[int]:
     return signums
 
 
+def _check_grace(grace: float) -> float:
+    if isinstance(grace, bool) or not isinstance(grace, int | float) or not grace > 0:
+        raise ValueError(f"stop_grace_s must be a number of seconds > 0, got {grace!r}")
+    return float(grace)
+
+
 @contextlib.contextmanager
-def handle_signals(requeue_signals: Iterable[int] = ()) -> Iterator[None]:
+def handle_signals(requeue_signals: Iterable[int] = (), grace: float = DEFAULT_GRACE_S) -> Iterator[None]:
     """For the duration of the block, SIGINT, SIGTERM and ``requeue_signals`` only record a request that
     :func:`decide` reads; the previous handlers come back afterwards (a requeue signal's previous handler
-    is also what :func:`requeue_job` calls). Outside the main thread (where Python allows no handlers) it
-    does nothing."""
+    is also what :func:`requeue_job` calls). After the first of these signals the process ends within
+    ``grace`` seconds, if need be without a checkpoint (:class:`_Watchdog`). A block inside another keeps
+    the outer one's request and handlers and adds its own requeue signals for its duration. Outside the
+    main thread (where Python allows no handlers) it does nothing."""
+    grace = _check_grace(grace)
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    signums = [signal.SIGINT, signal.SIGTERM, *(s for s in requeue_signals if s not in (signal.SIGINT, signal.SIGTERM))]
+    requeue = frozenset(int(s) for s in requeue_signals) - {signal.SIGINT, signal.SIGTERM}
+    handled = {signal.SIGINT, signal.SIGTERM, *_REQUEST.requeue_signums} if _REQUEST.depth else set()
+    signums = [s for s in (signal.SIGINT, signal.SIGTERM, *sorted(requeue)) if int(s) not in handled]
     previous = {int(s): signal.getsignal(s) for s in signums}
-    _REQUEST.signum = None
-    _REQUEST.requeue_signums = frozenset(int(s) for s in requeue_signals)
-    _REQUEST.previous = previous
+    outer = (_REQUEST.requeue_signums, dict(_REQUEST.previous))
+    if not _REQUEST.depth:  # a new run: nothing asked yet
+        _REQUEST.signum, _REQUEST.sigints = None, 0
+    _REQUEST.requeue_signums = outer[0] | requeue
+    _REQUEST.previous = {**previous, **outer[1]}
+    _REQUEST.depth += 1
+    watchdog = _Watchdog(grace) if _REQUEST.depth == 1 else None
     for s in signums:
         signal.signal(s, _REQUEST.record)
     try:
@@ -139,7 +200,85 @@ def handle_signals(requeue_signals: Iterable[int] = ()) -> Iterator[None]:
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler if handler is not None else signal.SIG_DFL)
-        _REQUEST.requeue_signums, _REQUEST.previous = frozenset(), {}
+        _REQUEST.depth -= 1
+        _REQUEST.requeue_signums, _REQUEST.previous = outer
+        if watchdog is not None:
+            watchdog.disarm(keep_deadline=_REQUEST.signum is not None)
+
+
+class _Watchdog:
+    """Ends the process ``grace`` seconds after its first stop signal, wherever its main thread is.
+
+    A Python signal handler runs only when the main thread executes Python code; inside a collective that
+    never completes it never runs, and the request is never even recorded. The C-level handler does write
+    the signal's number to Python's wakeup file descriptor (:func:`signal.set_wakeup_fd`), which this
+    thread reads. From the first of the run's signals on it counts ``grace`` seconds: a stop that the
+    ranks decided ends the process long before that (its last batch, its validation, one checkpoint); if
+    the process is still alive then, it prints every thread's stack (where this rank was) and exits with
+    128 + the signal number. The deadline stays after the run's handlers are gone (a process stopped by a
+    signal may still hang at exit)."""
+
+    def __init__(self, grace: float):
+        self.grace = grace
+        self.signums = {int(signal.SIGINT), int(signal.SIGTERM)}
+        self._read, self._write = os.pipe()
+        self._disarm_read, self._disarm_write = os.pipe()
+        os.set_blocking(self._write, False)
+        try:
+            self._previous_fd = signal.set_wakeup_fd(self._write, warn_on_full_buffer=False)
+        except ValueError:  # not the main thread of the main interpreter
+            self._previous_fd = None
+            self._close()
+            self._thread = None
+            return
+        self._thread = threading.Thread(target=self._watch, name="stop-watchdog", daemon=True)
+        self._thread.start()
+
+    def _watch(self) -> None:
+        first, deadline = None, None
+        watched = [self._read, self._disarm_read]
+        while True:
+            wait = None if deadline is None else max(0.0, deadline - time.monotonic())
+            ready, _, _ = select.select(watched, [], [], wait)
+            if self._read in ready:
+                for number in os.read(self._read, 512):
+                    if first is None and (number in self.signums or number in _REQUEST.requeue_signums):
+                        first, deadline = number, time.monotonic() + self.grace
+            if self._disarm_read in ready:
+                if first is None:
+                    return
+                watched = [self._read]  # no more signals come here; the deadline stays
+            if deadline is not None and time.monotonic() >= deadline:
+                self._end(first)
+
+    def _end(self, signum: int) -> NoReturn:
+        rank = os.environ.get("LOCAL_RANK", "0")
+        name = signal.Signals(signum).name
+        with contextlib.suppress(OSError):
+            os.write(2, (f"[rank {rank}] {name} was received {self.grace:.0f} s ago and the run has not stopped "
+                         "(stop_grace_s): it is stuck where no stop can be decided, e.g. in a collective that "
+                         "another rank never joins. Ending this process now, without writing a checkpoint; "
+                         "where each of its threads was:\n").encode())  # fmt: skip
+            faulthandler.dump_traceback(file=2, all_threads=True)
+        os._exit(128 + signum)
+
+    def disarm(self, keep_deadline: bool) -> None:
+        """The run's handlers are gone: stop reading signals (a deadline already set stays when
+        ``keep_deadline``)."""
+        if self._thread is None:
+            return
+        with contextlib.suppress(ValueError):
+            signal.set_wakeup_fd(self._previous_fd if self._previous_fd is not None else -1)
+        os.write(self._disarm_write, b"x")
+        if keep_deadline:  # the thread sleeps until the deadline, or the process ends first
+            return
+        self._thread.join(timeout=5)
+        self._close()
+
+    def _close(self) -> None:
+        for fd in (self._read, self._write, self._disarm_read, self._disarm_write):
+            with contextlib.suppress(OSError):
+                os.close(fd)
 
 
 class StopRequested(Exception):
@@ -166,6 +305,11 @@ class TrainingInterrupted(Exception):
         super().__init__(f"training stopped by {name} in epoch {epoch} at global step {step}; {where}")
 
 
+class DecisionTimeout(RuntimeError):
+    """The ranks' decision at a point did not come within the process group's timeout: another rank never
+    reached that point (it is stuck or it died; its own output says where it was)."""
+
+
 def exit_after_stop(signum: int, message: str) -> NoReturn:
     """End the process after a stop the ranks decided together: rank 0 logs ``message`` (where it stopped,
     what was kept, how to go on) and exits with 128 + ``signum``; the other ranks exit with 0 (a non-zero
@@ -177,32 +321,143 @@ def exit_after_stop(signum: int, message: str) -> NoReturn:
     raise SystemExit(128 + int(signum))
 
 
-def decide(trainer: Any = None) -> int | None:
+# ---------------------------------------------------------------------------------------------- deciding
+class _Decisions:
+    """The ranks' decisions: one all-reduce (maximum of every rank's request code) per point, on a gloo
+    process group of their own, run by a thread of this rank in the order the points were passed.
+
+    :meth:`send` hands this rank's request at a point to the thread and returns at once; :meth:`receive`
+    waits for the results of the points sent before (each completes once every rank has sent it), at most
+    the group's ``timeout`` for each, and raises :class:`DecisionTimeout` naming the point otherwise."""
+
+    def __init__(self, timeout: datetime.timedelta):
+        self.world = torch.distributed.group.WORLD
+        self.rank = torch.distributed.get_rank()
+        self.timeout = timeout
+        self.group = torch.distributed.new_group(backend="gloo", timeout=timeout)
+        self._todo: queue.SimpleQueue = queue.SimpleQueue()
+        self._done: queue.SimpleQueue = queue.SimpleQueue()
+        self._pending: list[str] = []  # the points sent and not received yet, oldest first
+        self._thread = threading.Thread(target=self._serve, name="stop-decisions", daemon=True)
+        self._thread.start()
+
+    def _serve(self) -> None:
+        while True:
+            code = self._todo.get()
+            if code is None:
+                return
+            try:
+                value = torch.tensor([code], dtype=torch.int64)
+                torch.distributed.all_reduce(value, op=torch.distributed.ReduceOp.MAX, group=self.group)
+                self._done.put(int(value.item()))
+            except Exception as e:  # noqa: BLE001 - handed to the main thread, which raises it
+                self._done.put(e)
+                return
+
+    def send(self, code: int, where: str) -> None:
+        self._pending.append(where)
+        self._todo.put(int(code))
+
+    def receive(self) -> int:
+        """The strongest request of every point sent so far (0: none)."""
+        strongest = 0
+        while self._pending:
+            where = self._pending[0]
+            seconds = self.timeout.total_seconds()
+            try:
+                # a Python-level wait: this rank's signal handlers still run meanwhile
+                result = self._done.get(timeout=seconds + 10)
+            except queue.Empty:
+                result = TimeoutError(f"no result within {seconds:.0f} s")
+            self._pending.pop(0)
+            if isinstance(result, BaseException):
+                self._pending.clear()
+                raise DecisionTimeout(
+                    f"[rank {self.rank}] the ranks' stop decision at {where} did not come within "
+                    f"{seconds:.0f} s ({result}): another rank never reached that point; its own output says "
+                    "where it was. If a step or a validation pass really takes that long, raise "
+                    "trainer.strategy.timeout (conf/trainer/ddp.yaml)"
+                ) from result
+            strongest = max(strongest, result)
+        return strongest
+
+    def close(self) -> None:
+        """Receive what is pending (every rank sent it), end the thread and the group."""
+        try:
+            self.receive()
+        finally:
+            self._todo.put(None)
+            self._thread.join(timeout=10)
+            with contextlib.suppress(Exception):
+                torch.distributed.destroy_process_group(self.group)
+
+
+_DECISIONS: _Decisions | None = None
+
+
+def _distributed() -> bool:
+    return (
+        torch.distributed.is_available()
+        and torch.distributed.is_initialized()
+        and torch.distributed.get_world_size() > 1
+    )
+
+
+def open_decisions(trainer: Any = None) -> _Decisions:
+    """This process's :class:`_Decisions` for the current process group, made on first use. **Collective**
+    the first time (the group's rendezvous): every rank calls it at the same point, before any other rank
+    may wait for it in another collective; :meth:`StopOnRequest.setup` does, just after Lightning's
+    pre-setup barrier. ``trainer``: where the group's timeout is set (its DDP strategy's ``timeout``)."""
+    global _DECISIONS
+    if _DECISIONS is None or _DECISIONS.world is not torch.distributed.group.WORLD:
+        timeout = getattr(getattr(trainer, "strategy", None), "_timeout", None)  # DDPStrategy(timeout=...)
+        if not isinstance(timeout, datetime.timedelta):
+            from torch.distributed.constants import default_pg_timeout as timeout
+        _DECISIONS = _Decisions(timeout)
+    return _DECISIONS
+
+
+def close_decisions() -> None:
+    """End this process's decisions before its process group is destroyed (every rank calls it)."""
+    global _DECISIONS
+    if _DECISIONS is not None:
+        decisions, _DECISIONS = _DECISIONS, None
+        if torch.distributed.is_initialized() and decisions.world is torch.distributed.group.WORLD:
+            decisions.close()
+
+
+def decide(trainer: Any = None, read: str = "all", where: str = "a decision point") -> int | None:
     """Every rank's request, decided together: the signal that any rank received (the requeue signal
     before SIGTERM before SIGINT), or ``None``. **Collective**: in a distributed run every rank must call
-    it at the same point. ``trainer``: where the process group and its device are (``None``: the default
-    process group, if any, on the CPU or the current CUDA device)."""
-    mine = _REQUEST.priority()
-    signum = _REQUEST.signum
-    distributed = torch.distributed.is_available() and torch.distributed.is_initialized()
-    if distributed and torch.distributed.get_world_size() > 1:
-        if trainer is not None:
-            device = trainer.strategy.root_device
-        elif torch.distributed.get_backend() == "nccl":
-            device = torch.device("cuda", torch.cuda.current_device())
-        else:
-            device = torch.device("cpu")
-        # [priority, signal number] of the strongest request on any rank
-        code = torch.tensor([mine * 256 + (signum or 0)], dtype=torch.int64, device=device)
-        torch.distributed.all_reduce(code, op=torch.distributed.ReduceOp.MAX)
-        value = int(code.item())
-        mine, signum = value // 256, value % 256
-    return signum if mine else None
+    it at the same points, in the same order, with the same ``read``:
+
+    * ``"all"``: this point's requests included; every rank waits until every other has reached it.
+    * ``"earlier"``: the requests of the points before this one (sent there); this point's own request is
+      sent and read at the next point. No rank waits for one that has not reached this point yet.
+    * ``"none"``: this point's requests are sent and read at the next point; returns ``None``.
+
+    On one process the answer is this process's own request (``None`` for ``"none"``). ``trainer``: where
+    the group's timeout is set (its DDP strategy's ``timeout``); ``where``: the point's name in errors."""
+    if read not in _READ:
+        raise ValueError(f"read must be one of {', '.join(_READ)}, got {read!r}")
+    code = _REQUEST.code()
+    if not _distributed():
+        return None if read == "none" or not code else code % 256
+    decisions = open_decisions(trainer)
+    if read == "earlier":
+        strongest = decisions.receive()
+        decisions.send(code, where)
+    else:
+        decisions.send(code, where)
+        if read == "none":
+            return None
+        strongest = decisions.receive()
+    return strongest % 256 if strongest else None
 
 
-def decide_or_raise(trainer: Any, where: str) -> None:
+def decide_or_raise(trainer: Any, where: str, read: str = "all") -> None:
     """:func:`decide`, raising :class:`StopRequested` (naming ``where``) when the ranks stop."""
-    signum = decide(trainer)
+    signum = decide(trainer, read=read, where=where)
     if signum is not None:
         raise StopRequested(signum, where)
 
@@ -223,35 +478,48 @@ class FlagOnlySignalConnector(_SignalConnector):
 class StopOnRequest(pl.Callback):
     """The points where the ranks decide together whether to stop (the trainer's part of the rule above).
 
-    In training: when fitting starts (the process group exists), when training starts (after the sanity
-    check), after every training batch and every training epoch. A stop there writes ``last.ckpt``
-    through the run's :class:`~image2sphere.training.checkpoint.EpochCheckpoint` (when it has one and the
-    run writes checkpoints) and raises :class:`TrainingInterrupted`; on the requeue signal rank 0 then asks
-    SLURM to requeue the job. In the test: after every test batch, raising :class:`StopRequested`.
-    ``python -m src.train`` adds it to every trainer it builds (:func:`use_flag_only_signals`).
+    In training: when fitting starts and when training starts (after the sanity check), reading the
+    requests of the points before; after every training batch but an epoch's last, reading those of the
+    points before; at every training epoch's end, only sending (read at the next epoch's first batch, or
+    after training). A stop there writes ``last.ckpt`` through the run's
+    :class:`~image2sphere.training.checkpoint.EpochCheckpoint` (when it has one and the run writes
+    checkpoints) and raises :class:`TrainingInterrupted`; on the requeue signal rank 0 then asks SLURM to
+    requeue the job. In the test: after every test batch (the points before) and at its end (every
+    point), raising :class:`StopRequested`. ``python -m src.train`` and ``src.eval`` add it to every
+    trainer they build (:func:`use_flag_only_signals`).
     """
 
+    def setup(self, trainer: pl.Trainer, pl_module: pl.LightningModule, stage: str) -> None:
+        if _distributed():  # every rank, just after Lightning's pre-setup barrier
+            open_decisions(trainer)
+
     def on_fit_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        self._stop_training(trainer, may_save=False)
+        self._stop_training(trainer, "when fitting starts", may_save=False)
 
     def on_train_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        self._stop_training(trainer, may_save=False)
+        self._stop_training(trainer, "when training starts", may_save=False)
 
     def on_train_batch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule, outputs: Any, batch: Any,
                            batch_idx: int) -> None:  # fmt: skip
-        # after an epoch's last batch the ranks decide at the epoch's end instead, after its validation: a
-        # checkpoint written between the two would resume with the validation and the epoch's end skipped
+        # after an epoch's last batch the epoch's end sends instead, after its validation: a checkpoint
+        # written between the two would resume with the validation and the epoch's end skipped
         if not _last_batch_of_epoch(trainer, batch_idx):
-            self._stop_training(trainer)
+            self._stop_training(trainer, f"after training batch {batch_idx} of epoch {trainer.current_epoch}")
 
     def on_train_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
-        self._stop_training(trainer)
+        # Only sent: Lightning computes the epoch's synced metrics lazily, on rank 0 perhaps already in the
+        # progress bar's hook and on the others later; a stop here would write last.ckpt (which reads those
+        # metrics) while ranks differ in what they have synced.
+        decide(trainer, read="none", where=f"the end of epoch {trainer.current_epoch}")
 
     def on_test_batch_end(self, trainer: pl.Trainer, *args: Any, **kwargs: Any) -> None:
-        decide_or_raise(trainer, "in the test")
+        decide_or_raise(trainer, "in the test", read="earlier")
 
-    def _stop_training(self, trainer: pl.Trainer, may_save: bool = True) -> None:
-        signum = decide(trainer)
+    def on_test_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        decide_or_raise(trainer, "in the test", read="all")
+
+    def _stop_training(self, trainer: pl.Trainer, where: str, may_save: bool = True) -> None:
+        signum = decide(trainer, read="earlier", where=where)
         if signum is None:
             return
         path = None

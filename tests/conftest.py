@@ -51,7 +51,6 @@ TINY = [
     "model.net.activation_resolution=4",
     "trainer.accelerator=cpu",
     "trainer.num_sanity_val_steps=0",
-    "callbacks.progress_bar.refresh_rate=0",
 ]
 # smaller batches and evaluation grids than the paper's, so that a smoke run of an experiment takes seconds
 SMOKE = [

@@ -12,7 +12,7 @@ import lightning.pytorch as pl
 import torch
 from torch.utils.data import DataLoader
 
-from image2sphere.data.loading import EpochShuffleSampler, ShardSampler, collate_skipping_corrupt
+from image2sphere.data.loading import EpochShuffleSampler, PaddedDataset, ShardSampler, collate_skipping_corrupt
 from image2sphere.data.workers import AUTO, auto_num_workers, check_num_workers, init_worker, local_processes
 
 __all__ = ["PoseDataModule"]
@@ -92,6 +92,8 @@ class PoseDataModule(pl.LightningDataModule):
                 sampler.set_epoch(self._start_epoch)
         else:
             sampler = ShardSampler(len(dataset), world, rank) if world > 1 else None
+            if sampler is not None:  # the same number of batches on every rank (empty slots at the end)
+                dataset = PaddedDataset(dataset, sampler.total_size)
         workers = self.num_workers
         if self._num_workers == AUTO:
             log.info("dataset.num_workers=auto: %d loader workers", workers)

@@ -8,7 +8,8 @@ Conventions
   the epoch (an :class:`EpochDataset`) gets the epoch with every training index (:class:`EpochIndex`,
   yielded by :class:`EpochShuffleSampler`), so the copy of the dataset in a persistent DataLoader
   worker, which never sees ``set_epoch``, follows it too.
-* Evaluation shares the dataset order between the ranks of a distributed run (:class:`ShardSampler`).
+* Evaluation shares the dataset order between the ranks of a distributed run (:class:`ShardSampler`), with
+  empty slots (:data:`PADDING`) that give every rank the same number of batches.
 * An item is a dict (:func:`single_label_item` for datasets with one label per image); a dataset that
   skips a corrupt image returns ``None``, which :func:`collate_skipping_corrupt` drops from its batch
   and counts in the batch's ``skipped`` entry.
@@ -29,6 +30,8 @@ __all__ = [
     "EpochDataset",
     "EpochIndex",
     "EpochShuffleSampler",
+    "PADDING",
+    "PaddedDataset",
     "ShardSampler",
     "collate_skipping_corrupt",
     "single_label_item",
@@ -56,15 +59,18 @@ def single_label_item(
 
 
 def collate_skipping_corrupt(items: Sequence[dict | None]) -> dict | None:
-    """Collate dataset items, dropping the ``None`` of skipped corrupt images.
+    """Collate dataset items, dropping the ``None`` of skipped corrupt images and the :data:`PADDING` of
+    empty slots (:class:`ShardSampler`).
 
-    The batch gets ``skipped`` (int64 scalar): how many were dropped. ``None`` when all were.
+    The batch gets ``skipped`` (int64 scalar): how many corrupt images were dropped. ``None`` when nothing
+    is left and something was corrupt; :data:`PADDING` when the batch held empty slots only.
     """
-    kept = [item for item in items if item is not None]
+    kept = [item for item in items if item is not None and item is not PADDING]
+    skipped = sum(item is None for item in items)
     if not kept:
-        return None
+        return None if skipped else PADDING
     batch = default_collate(kept)
-    batch["skipped"] = torch.tensor(len(items) - len(kept))
+    batch["skipped"] = torch.tensor(skipped)
     return batch
 
 
@@ -168,24 +174,73 @@ class EpochShuffleSampler(DistributedSampler):
 
 
 class ShardSampler(DistributedSampler):
-    """The evaluation order ``range(n)`` shared out between ``num_replicas`` ranks without repeats: rank
-    ``r`` takes ``r, r + num_replicas, ...`` (shares differ by at most one image). Every image is scored by
-    exactly one rank; the test gathers the per-image results (``PoseEstimationModule``). A
-    ``DistributedSampler`` so that Lightning keeps it (its own pads the shares with repeats)."""
+    """The evaluation order ``range(n)`` shared out between ``num_replicas`` ranks, every image scored by
+    exactly one rank, every rank given the same number of slots: rank ``r`` takes ``r, r + num_replicas,
+    ...`` below ``ceil(n / num_replicas) * num_replicas``; the indices from ``n`` on are empty slots
+    (:class:`PaddedDataset` gives :data:`PADDING` there, which :func:`collate_skipping_corrupt` drops).
+    Equal shares give every rank the same number of batches, so that points passed once per batch (the
+    ranks' stop decisions) match, and a rank never has no batch at all (Lightning would skip its test
+    loop, and the others would wait for its part of the results). The test gathers the per-image results
+    (``PoseEstimationModule``). A ``DistributedSampler`` so that Lightning keeps it (its own pads the
+    shares with repeats)."""
 
     def __init__(self, n: int, num_replicas: int, rank: int):
         self.n = int(n)
         self.dataset = None
         self.epoch, self.seed, self.shuffle, self.drop_last = 0, 0, False, False
         self.num_replicas, self.rank = _check_rank(num_replicas, rank)
-        self.num_samples = len(range(self.rank, self.n, self.num_replicas))
-        self.total_size = self.n
+        self.num_samples = -(-self.n // self.num_replicas)  # ceil
+        self.total_size = self.num_samples * self.num_replicas
 
     def __iter__(self) -> Iterator[int]:
-        return iter(range(self.rank, self.n, self.num_replicas))
+        return iter(range(self.rank, self.total_size, self.num_replicas))
 
     def __len__(self) -> int:
         return self.num_samples
+
+
+class _Padding:
+    """The item of an empty slot: one object, also after pickling (loader workers)."""
+
+    _instance: _Padding | None = None
+
+    def __new__(cls) -> _Padding:
+        if cls._instance is None:
+            cls._instance = super().__new__(cls)
+        return cls._instance
+
+    def __reduce__(self) -> tuple:
+        return (_Padding, ())
+
+    def __repr__(self) -> str:
+        return "PADDING"
+
+
+#: what :class:`PaddedDataset` gives for an empty slot, and :func:`collate_skipping_corrupt` for a batch of
+#: empty slots only (a batch with nothing to score, not counted as skipped)
+PADDING = _Padding()
+
+
+class PaddedDataset(Dataset):
+    """``dataset`` followed by empty slots (:data:`PADDING`) up to ``length`` items (the slots
+    :class:`ShardSampler` gives the ranks with the smaller shares)."""
+
+    def __init__(self, dataset: Dataset, length: int):
+        if int(length) < len(dataset):
+            raise ValueError(f"length must be at least the dataset's {len(dataset)} items, got {length}")
+        self.dataset, self.length = dataset, int(length)
+
+    def __len__(self) -> int:
+        return self.length
+
+    def __getitem__(self, index: int):
+        return self.dataset[index] if index < len(self.dataset) else PADDING
+
+    def init_worker(self) -> None:
+        """The wrapped dataset's start in a loader worker (:func:`~image2sphere.data.workers.init_worker`)."""
+        init = getattr(self.dataset, "init_worker", None)
+        if callable(init):
+            init()
 
 
 def _check_rank(num_replicas: int, rank: int) -> tuple[int, int]:

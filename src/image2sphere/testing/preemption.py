@@ -2,8 +2,8 @@
 
 ``python -m image2sphere.testing.preemption [--moments 22] [--seed 0] [--out DIR]`` (from the repository
 root, on the CPU; about 30 s a moment on two cores) trains a tiny two-process DDP run (Lightning's
-``trainer=ddp`` on the CPU, gloo, no loader workers) once without interruption, then once per *moment*
-of a seeded schedule with a SIGTERM at that moment, and checks for each:
+``trainer=ddp`` on the CPU, gloo, the default callbacks, two loader workers a loader) once without
+interruption, then once per *moment* of a seeded schedule with a SIGTERM at that moment, and checks for each:
 
 * the whole process group (both ranks, their data-loading workers) has exited within ``--bound``
   seconds of the signal; rank 0 exited with 143 (128 + SIGTERM) and said how to go on;
@@ -51,24 +51,23 @@ import lightning.pytorch as pl
 
 __all__ = ["MOMENT_PHASES", "Moment", "SignalAt", "check_moment", "main", "run_group", "schedule"]
 
-# A run small enough to take seconds: 2 ranks x batch 2, 4 training batches a rank per epoch, 2 epochs,
-# one validation batch a rank, a sanity check, 2 test batches a rank. No loader workers: with workers a rank
-# forks while threads of its own start and end (multiprocessing's queue feeders), and on CPython 3.11 a
-# fork at the instant a thread ends can leave the child waiting for ever on the interpreter's thread list
-# lock (seen 3 times in about 150 runs here, in runs with and without a signal: PyOS_AfterFork_Child ->
-# _PyThreadState_DeleteExcept); the workers' side of a stop is tested on its own in tests/test_stop.py.
+# A run small enough to take seconds, with what a user has: every default callback (the tqdm progress bar
+# on, SO(3) plots, BatchNorm statistics, checkpoints) and two loader workers per loader (the real datasets'
+# configs start workers). 2 ranks x batch 2, 4 training batches a rank per epoch, 2 epochs, one validation
+# batch a rank, a sanity check, 2 test batches a rank. No logger: the stop writes nothing a logger holds.
 RUN = [
     "trainer=ddp",
     "trainer.devices=2",
     "trainer.accelerator=cpu",
     "trainer.max_epochs=2",
     "trainer.num_sanity_val_steps=1",
+    "trainer.strategy.timeout.seconds=60",
     "dataset.render.train=10",
     "dataset.render.test=3",
     "dataset.val_per_shape=2",
     "dataset.image_size=32",
     "dataset.batch_size=2",
-    "dataset.num_workers=0",
+    "dataset.num_workers=2",
     "lmax=2",
     "train_grid_level=2",
     "eval_grid_level=3",
@@ -76,7 +75,6 @@ RUN = [
     "model.net.sphere_channels=16",
     "model.net.so3_channels=4",
     "model.net.activation_resolution=4",
-    "callbacks.progress_bar.refresh_rate=0",
     "logger=none",
 ]
 # phase -> (occurrences in the run above on each rank, ranks that pass it)

@@ -42,6 +42,7 @@ from lightning.pytorch.utilities.warnings import PossibleUserWarning
 from torch import nn
 
 from image2sphere.data.common import stable_seed
+from image2sphere.data.loading import PADDING
 from image2sphere.distributions.base import LOG_UNIFORM_DENSITY
 from image2sphere.metrics import (
     check_targets,
@@ -174,7 +175,10 @@ class PoseEstimationModule(pl.LightningModule):
         return dist.tempered(self.recalibration.temperature)
 
     def _count_skipped(self, batch: dict | None, stage: str) -> bool:
-        """Count the corrupt images left out of ``batch``; False when nothing is left of it."""
+        """Count the corrupt images left out of ``batch``; False when nothing is left of it (also for a batch
+        of a distributed run's empty slots, :data:`~image2sphere.data.loading.PADDING`)."""
+        if batch is PADDING:
+            return False
         if batch is None:
             # all images of the batch were skipped; their number is unknown here, count at least one
             self.skipped_images[stage] = self.skipped_images.get(stage, 0) + 1
@@ -280,10 +284,15 @@ class PoseEstimationModule(pl.LightningModule):
         for key, value in out.items():
             self._records.setdefault(key, []).append(value.detach().cpu())
 
-    def _summarize(self) -> dict[str, float]:
+    def _summarize(self) -> dict[str, float] | None:
+        """The metrics of the records of every process (:meth:`_gather`); ``None`` when no process has any.
+        **Collective** in a distributed run: every rank calls it at the end of every evaluation epoch, also
+        one whose share was empty or all corrupt."""
         records = {k: torch.cat(v) for k, v in self._records.items()}
         self._records = {}
         records = self._gather(records)
+        if not records:
+            return None
         names = self.class_names or [str(c) for c in range(int(records["class_index"].max()) + 1)]
         metrics = summarize_pose_metrics(
             records["class_index"],
@@ -326,7 +335,10 @@ class PoseEstimationModule(pl.LightningModule):
         if distributed:
             gathered: list = [None] * trainer.world_size
             torch.distributed.all_gather_object(gathered, records)
-            records = {k: torch.cat([g[k] for g in gathered]) for k in records}
+            keys = dict.fromkeys(k for g in gathered for k in g)  # a rank with nothing scored sends {}
+            records = {k: torch.cat([g[k] for g in gathered if k in g]) for k in keys}
+        if not records:
+            return records
         index = records["index"].long()
         if len(index) == 0 or bool((index < 0).any()):  # images without a dataset index: kept as they came
             return records
@@ -347,9 +359,9 @@ class PoseEstimationModule(pl.LightningModule):
             self._record(self._evaluate(batch, self.hparams.val_grid_level, None))
 
     def on_validation_epoch_end(self) -> None:
-        if not self._records:
-            return
         m = self._summarize()
+        if m is None:
+            return
         keys = ("loss", "log_likelihood", "median_error_deg", "acc15")  # log_likelihood: density methods only
         self.log_dict({f"val/{k}": m[k] for k in keys if k in m}, prog_bar=True, sync_dist=False)
 
@@ -363,7 +375,7 @@ class PoseEstimationModule(pl.LightningModule):
         self._unindexed = 0
 
     def on_test_epoch_end(self) -> None:
-        self.test_metrics = self._summarize()
+        self.test_metrics = self._summarize() or {}
         if self.skipped_images.get("test"):
             # the metrics do not cover every test image: say so next to them
             self.test_metrics["skipped_images"] = float(self.skipped_images["test"])
@@ -384,7 +396,7 @@ class PoseEstimationModule(pl.LightningModule):
         batches, n_images = [], 0
         try:
             for batch in dataloader:
-                if batch is None:
+                if batch is None or batch is PADDING:
                     continue
                 batch = self.transfer_batch_to_device(batch, self.device, 0)
                 output = self(batch["image"], batch.get("class_index"))

@@ -85,6 +85,7 @@ __all__ = [
     "FlagOnlySignalConnector",
     "StopOnRequest",
     "StopRequested",
+    "SyncEpochMetricsFirst",
     "TrainingInterrupted",
     "close_decisions",
     "decide",
@@ -540,14 +541,36 @@ def _last_batch_of_epoch(trainer: pl.Trainer, batch_idx: int) -> bool:
     return isinstance(total, int) and batch_idx + 1 >= total
 
 
+class SyncEpochMetricsFirst(pl.Callback):
+    """At a training epoch's end, before any other callback's hook, every rank computes the epoch's logged
+    metrics (``trainer.callback_metrics``), which syncs those logged with ``sync_dist=True`` across ranks.
+
+    Lightning computes them lazily, on whichever access comes first: on rank 0 in the progress bar's
+    epoch-end hook (it is drawn on rank 0 alone), on the others later, in the checkpoint callback or the
+    logger's epoch end. Any collective between the two (BatchNorm statistics recomputed at the epoch's
+    end, a user's callback) then met a metric sync on the other rank: measured, a gloo abort ("Received
+    data size doesn't match expected size", 64 vs 4 bytes) at the first epoch's end of ``trainer=ddp
+    experiment=modelnet10`` with no validation split, and a hang at the stop decision before it. Computed
+    here first, on every rank, in the same order, the later accesses find them computed.
+    :func:`use_flag_only_signals` puts it first among the trainer's callbacks (Lightning keeps that order
+    but for its tuner callbacks, which go first, and checkpoint callbacks, which go last)."""
+
+    def on_train_epoch_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
+        trainer.callback_metrics  # noqa: B018 - computing them is the point
+
+
 def use_flag_only_signals(trainer: Any) -> None:
-    """Switch Lightning's signal handling off for ``trainer`` (see :class:`FlagOnlySignalConnector`)."""
+    """Switch Lightning's signal handling off for ``trainer`` (see :class:`FlagOnlySignalConnector`), add the
+    points where the ranks decide to stop (:class:`StopOnRequest`, last) and have every rank sync the
+    epoch's metrics at the same point (:class:`SyncEpochMetricsFirst`, first)."""
     if not isinstance(getattr(trainer, "_signal_connector", None), _SignalConnector):
         raise RuntimeError(
             "this Lightning version has no Trainer._signal_connector: the run's signal handling cannot replace "
             "Lightning's; install a Lightning version within pyproject.toml's range"
         )
     trainer._signal_connector = FlagOnlySignalConnector(trainer)
+    if not any(isinstance(c, SyncEpochMetricsFirst) for c in trainer.callbacks):
+        trainer.callbacks.insert(0, SyncEpochMetricsFirst())
     if not any(isinstance(c, StopOnRequest) for c in trainer.callbacks):
         trainer.callbacks.append(StopOnRequest())
 

@@ -1,6 +1,7 @@
 """Every DataModule with DataLoader workers: the same items in the same order as without workers
-(fork and spawn), the epoch reaching persistent workers, resume within an epoch, LMDB environments
-per worker, and the ``num_workers`` / ``pin_memory`` settings.
+(forkserver, the default, fork and spawn), the epoch reaching persistent workers, resume within an epoch,
+LMDB environments per worker, every dataset through pickle, the workers' signals under a fork server, and
+the ``num_workers`` / ``multiprocessing_context`` / ``pin_memory`` settings.
 
 The datasets are the published-layout fixtures of :mod:`image2sphere.data.fixtures`.
 """
@@ -9,6 +10,9 @@ from __future__ import annotations
 
 import os
 import pickle
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import lightning.pytorch as pl
@@ -23,9 +27,19 @@ from image2sphere.data.fixtures.pascal3d import write_pascal3d, write_renderforc
 from image2sphere.data.fixtures.symsol import write_symsol
 from image2sphere.data.loading import EpochIndex, EpochShuffleSampler
 from image2sphere.data.modelnet import ModelNet10DataModule, ModelNet10Dataset, close_lmdb_environments
-from image2sphere.data.pascal3d import Pascal3DDataModule
+from image2sphere.data.pascal3d import Pascal3DDataModule, SyntheticViews
+from image2sphere.data.pascal3d_annotations import SyntheticView
 from image2sphere.data.symsol import SymsolDataModule
-from image2sphere.data.workers import auto_num_workers, check_num_workers, init_worker, local_processes
+from image2sphere.data.workers import (
+    DEFAULT_START_METHOD,
+    auto_num_workers,
+    check_multiprocessing_context,
+    check_num_workers,
+    init_worker,
+    local_processes,
+)
+from image2sphere.testing.commands import process_group
+from image2sphere.testing.preemption import group_alive
 
 REPO = Path(__file__).resolve().parents[1]
 DATASETS = ("modelnet10", "pascal3d", "symsol")
@@ -90,17 +104,27 @@ def labels(batches: list[dict]) -> torch.Tensor:
 # ------------------------------------------------------------------------------------------ same items
 
 
+def parent_of(pid: int) -> int:
+    stat = Path(f"/proc/{pid}/stat").read_text()
+    return int(stat[stat.rindex(")") + 2 :].split()[1])
+
+
 @pytest.mark.parametrize("name", DATASETS)
 def test_two_workers_give_the_items_of_zero_workers(roots, name):
+    """By default the workers start from a fork server (not forked from this process, whose threads could
+    hold an interpreter lock at fork), and give the batches of 0 workers."""
     reference = make_datamodule(name, roots, num_workers=0)
     dm = make_datamodule(name, roots, num_workers=2)
+    assert dm.multiprocessing_context == DEFAULT_START_METHOD == "forkserver"
     for make in ("train_dataloader", "test_dataloader"):
         zero, two = getattr(reference, make)(), getattr(dm, make)()
-        assert zero.num_workers == 0 and not zero.persistent_workers
+        assert zero.num_workers == 0 and not zero.persistent_workers and zero.multiprocessing_context is None
         assert two.num_workers == 2 and two.persistent_workers and two.worker_init_fn is init_worker
+        assert two.multiprocessing_context.get_start_method() == "forkserver"
         epoch = 0 if make == "train_dataloader" else None
         expected = epoch_batches(zero, epoch)
         assert_same_batches(epoch_batches(two, epoch), expected)
+        assert all(parent_of(w.pid) != os.getpid() for w in two._iterator._workers)  # the fork server's children
         seen = sum(len(b["index"]) for b in expected)
         assert seen == len(zero.dataset)  # every item, no dropped last batch
     assert {"image", "class_index", "index", "rotation"} <= set(epoch_batches(reference.train_dataloader(), 0)[0])
@@ -207,8 +231,8 @@ class _ProbeDataset(ModelNet10Dataset):
 
 
 def test_forked_workers_close_inherited_environments_and_open_their_own(roots):
-    dm = make_datamodule("modelnet10", roots, num_workers=2)  # the constructor opened both splits' LMDBs here
-    assert len(modelnet._ENVIRONMENTS) == 2
+    dm = make_datamodule("modelnet10", roots, num_workers=2, multiprocessing_context="fork")
+    assert len(modelnet._ENVIRONMENTS) == 2  # the constructor opened both splits' LMDBs here
     data = dm.data_train
     dm.data_train = _ProbeDataset(data.root, data.split, data.rows, image_size=data.image_size, labels=data.labels)
     parent_envs = dict(modelnet._ENVIRONMENTS)
@@ -327,3 +351,194 @@ def test_datasets_decode_in_getitem_not_up_front(roots, monkeypatch):
     assert calls == []
     make_datamodule("pascal3d", roots).data_train[np.int64(0)]
     assert len(calls) == 1
+
+
+# ------------------------------------------------------------------------------------ the start method
+
+
+@pytest.mark.parametrize("name", DATASETS)
+@pytest.mark.parametrize("bad", ["thread", "", "fork server", 1, True, ["fork"]])
+def test_bad_multiprocessing_context_names_the_key(roots, name, bad):
+    with pytest.raises(
+        ValueError, match=r"dataset\.multiprocessing_context must be one of fork, forkserver, spawn or null"
+    ):
+        make_datamodule(name, roots, multiprocessing_context=bad)
+
+
+def test_check_multiprocessing_context():
+    assert check_multiprocessing_context(None) is None  # the default, resolved where the loaders are made
+    assert [check_multiprocessing_context(m) for m in ("fork", " Spawn", "FORKSERVER")] == [
+        "fork",
+        "spawn",
+        "forkserver",
+    ]
+    with pytest.raises(ValueError, match=r"^my\.key must be one of fork, forkserver, spawn or null .*got 'threads'"):
+        check_multiprocessing_context("threads", "my.key")
+
+
+@pytest.mark.parametrize("method", ["fork", "spawn", "forkserver", None])
+def test_the_start_method_set_is_the_loaders(roots, method):
+    dm = make_datamodule("symsol", roots, num_workers=1, multiprocessing_context=method)
+    assert dm.multiprocessing_context == (method or "forkserver")
+    assert dm.train_dataloader().multiprocessing_context.get_start_method() == dm.multiprocessing_context
+    dm.multiprocessing_context = "Fork"  # settable, checked
+    assert dm.test_dataloader().multiprocessing_context.get_start_method() == "fork"
+    with pytest.raises(ValueError, match=r"dataset\.multiprocessing_context must be"):
+        dm.multiprocessing_context = "vfork"
+
+
+@pytest.mark.parametrize("config", ["modelnet10", "pascal3d", "symsol1", "symsol_rendered"])
+def test_dataset_configs_leave_the_start_method_to_the_default(config):
+    cfg = OmegaConf.load(REPO / "conf" / "dataset" / f"{config}.yaml")
+    assert "multiprocessing_context" in cfg and cfg.multiprocessing_context is None
+
+
+# ------------------------------------------------------------------------------ datasets through pickle
+
+
+def assert_same_item(got: dict | None, expected: dict | None) -> None:
+    assert (got is None) == (expected is None)
+    assert set(got) == set(expected)
+    for key in expected:
+        torch.testing.assert_close(got[key], expected[key], rtol=0, atol=0, msg=lambda m, key=key: f"{key}: {m}")
+
+
+@pytest.mark.parametrize("name", [*DATASETS, "symsol_cached"])
+def test_every_dataset_survives_pickling_and_gives_the_same_items(roots, name):
+    """What a forkserver or spawn worker receives: the dataset pickled (here with plain pickle, which copies
+    tensors; the workers' pickler shares them). ``symsol_cached`` is the built-in rendered set's reader."""
+    dm = make_datamodule("symsol" if name == "symsol_cached" else name, roots,
+                         **({"cache_images": True} if name == "symsol_cached" else {}))  # fmt: skip
+    for data in (dm.data_train, dm.data_test):
+        data[0]  # ModelNet10: the LMDB environment is open in this process now
+        copy = pickle.loads(pickle.dumps(data))
+        assert type(copy) is type(data) and len(copy) == len(data)
+        if name == "modelnet10":
+            assert copy._env is None  # opened again on the first read, in the process that reads
+        keys = [0, len(data) - 1] + (
+            [EpochIndex(2, 1), EpochIndex(5, len(data) - 1)] if hasattr(data, "set_epoch") else []
+        )
+        for key in keys:
+            assert_same_item(copy[key], data[key])
+
+
+def timed(fn, *args) -> float:
+    t0 = time.perf_counter()
+    fn(*args)
+    return time.perf_counter() - t0
+
+
+def test_synthetic_views_are_the_views_and_pickle_small():
+    views = [SyntheticView(Path(f"/data/syn/02691156/{i:032x}/02691156_{i:032x}_a{i % 360:03d}_e010_t-02_d003.png"),
+                           i % 12, i % 360, 10, -2) for i in range(20000)]  # fmt: skip
+    packed = SyntheticViews(views)
+    assert len(packed) == 20000 and list(packed) == views and packed[-1] == views[-1] and packed[3:5] == views[3:5]
+    with pytest.raises(IndexError):
+        packed[20000]
+    copy = pickle.loads(pickle.dumps(packed))
+    assert list(copy) == views
+    # no object per view in the pickle (the list's holds a SyntheticView and a PosixPath per view), so
+    # unpickling is a few copies; the workers' pickler shares the tensors instead of copying them
+    assert b"pascal3d_annotations" in pickle.dumps(views) and b"pascal3d_annotations" not in pickle.dumps(packed)
+    assert b"PosixPath" not in pickle.dumps(packed)
+
+    def load_time(obj) -> float:
+        data = pickle.dumps(obj)
+        return min(timed(pickle.loads, data) for _ in range(3))
+
+    assert load_time(packed) < 0.5 * load_time(views)
+    assert len(SyntheticViews()) == 0 and list(SyntheticViews([])) == []
+
+
+# ------------------------------------------------------------------- signals of workers of a fork server
+
+
+def group_left(pgid: int, seconds: float = 5.0) -> list[str]:
+    """The command lines of the processes of group ``pgid`` still alive after up to ``seconds``."""
+    deadline = time.monotonic() + seconds
+    while group_alive(pgid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    left = []
+    for pid in group_alive(pgid):
+        try:
+            left.append(Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()[:200])
+        except OSError:
+            pass
+    return left
+
+
+FORKSERVER_SCRIPT = """
+import os, signal, subprocess, sys, time
+import torch
+from torch.utils.data import DataLoader, Dataset
+from image2sphere.data.workers import init_worker, worker_context
+
+
+class Slow(Dataset):
+    def __len__(self):
+        return 1000
+
+    def __getitem__(self, i):
+        time.sleep(0.005)
+        return torch.tensor([i])
+
+
+if __name__ == "__main__":
+    loader = DataLoader(Slow(), batch_size=2, num_workers=1, persistent_workers=True, worker_init_fn=init_worker,
+                        multiprocessing_context=worker_context())
+    it = iter(loader)
+    next(it)
+    (worker,) = [w.pid for w in it._workers]
+    from multiprocessing import forkserver
+    server = forkserver._forkserver._forkserver_pid
+    print("worker", worker, "server", server, flush=True)
+    if sys.argv[1] == "kill-rank":
+        time.sleep(600)  # killed by the test
+    subprocess.run(["kill", "-TERM", str(worker)], check=True)  # from another process: left to the rank
+    subprocess.run(["kill", "-INT", str(worker)], check=True)
+    got = []
+    signal.signal(signal.SIGTERM, lambda *_: got.append(1))  # the rank records it (image2sphere.training.stop)
+    group = os.getpgid(0)
+    subprocess.run(["kill", "-TERM", "--", f"-{group}"], check=True, start_new_session=True)  # the whole job
+    time.sleep(0.5)
+    batches = [next(it)[0, 0].item() for _ in range(5)]
+    print("served", batches, "rank got", got, "server alive", os.path.exists(f"/proc/{server}/stat"), flush=True)
+    # the script ends with the persistent worker alive: Python's multiprocessing terminates it at exit (SIGTERM
+    # from this process, which is not the worker's parent here), which the worker must obey; the fork server
+    # then ends
+"""
+
+
+@pytest.mark.slow
+def test_forkserver_workers_ignore_signals_from_outside_and_obey_their_ranks_terminate(tmp_path):
+    """The variant of tests/test_stop.py's test for the default start method, whose workers are children
+    of the fork server, not of their rank: a SIGTERM or Ctrl-C from another process is ignored, as is a
+    SIGTERM to the whole process group (by the fork server too, which the workers need); the rank's
+    terminate at exit ends the worker, and nothing of the group is left."""
+    script = tmp_path / "forkserver_rank.py"
+    script.write_text(FORKSERVER_SCRIPT)
+    with process_group([sys.executable, str(script), "signals"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                       text=True) as proc:  # fmt: skip
+        out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err[-3000:]
+    worker, server = int(out.split("worker ")[1].split()[0]), int(out.split("server ")[1].split()[0])
+    assert "served [2, 4, 6, 8, 10] rank got [1] server alive True" in out, out + err[-2000:]
+    assert not group_left(proc.pid)  # the fork server and resource tracker end just after the rank's output
+    assert not set(group_alive(proc.pid)) & {worker, server}  # ended (a zombie at most, once reparented)
+
+
+@pytest.mark.slow
+def test_forkserver_workers_end_with_a_killed_rank(tmp_path):
+    """A rank killed with SIGKILL leaves neither its workers (whose parent, the fork server, lives on) nor
+    the fork server behind."""
+    script = tmp_path / "forkserver_rank.py"
+    script.write_text(FORKSERVER_SCRIPT)
+    with process_group([sys.executable, str(script), "kill-rank"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                       text=True) as proc:  # fmt: skip
+        line = proc.stdout.readline()
+        assert line.startswith("worker "), line + proc.stderr.read()[-3000:]
+        worker, server = int(line.split()[1]), int(line.split()[3])
+        assert parent_of(worker) == server != proc.pid
+        proc.kill()
+        proc.wait()
+        assert not group_left(proc.pid, 20)

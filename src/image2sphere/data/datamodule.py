@@ -1,7 +1,8 @@
 """The base LightningDataModule of the datasets (:class:`PoseDataModule`): its loaders and worker settings.
 
 Workers are persistent, images are decoded in them, each opens its own file handles
-(:func:`~image2sphere.data.workers.init_worker`), and memory is pinned only when a CUDA device is present.
+(:func:`~image2sphere.data.workers.init_worker`), they start from a fork server by default
+(:func:`~image2sphere.data.workers.worker_context`), and memory is pinned only when a CUDA device is present.
 """
 
 from __future__ import annotations
@@ -13,7 +14,16 @@ import torch
 from torch.utils.data import DataLoader
 
 from image2sphere.data.loading import EpochShuffleSampler, PaddedDataset, ShardSampler, collate_skipping_corrupt
-from image2sphere.data.workers import AUTO, auto_num_workers, check_num_workers, init_worker, local_processes
+from image2sphere.data.workers import (
+    AUTO,
+    DEFAULT_START_METHOD,
+    auto_num_workers,
+    check_multiprocessing_context,
+    check_num_workers,
+    init_worker,
+    local_processes,
+    worker_context,
+)
 
 __all__ = ["PoseDataModule"]
 
@@ -31,17 +41,21 @@ class PoseDataModule(pl.LightningDataModule):
     :func:`~image2sphere.data.workers.local_processes` of the attached trainer). With workers they are
     persistent (started once per loader, not every epoch), images are decoded in them, and
     :func:`~image2sphere.data.workers.init_worker` runs in each. ``pin_memory`` applies only
-    when a CUDA device is present. ``multiprocessing_context`` (``None``: the platform's default,
-    ``fork`` on Linux; or ``"spawn"``, ``"forkserver"``) is how workers start.
+    when a CUDA device is present. ``multiprocessing_context`` is how workers start: set as ``"fork"``,
+    ``"forkserver"``, ``"spawn"`` or ``None``
+    (:func:`~image2sphere.data.workers.check_multiprocessing_context`), read as the method it resolves to
+    (``None``: :data:`~image2sphere.data.workers.DEFAULT_START_METHOD`, ``forkserver`` on Linux; ``fork``
+    can deadlock a worker at start in a rank with threads, see :mod:`~image2sphere.data.workers`).
 
     Subclasses set ``data_train``, ``data_val`` (or ``None``), ``data_test`` in ``setup`` and
-    ``batch_size``, ``num_workers``, ``pin_memory``, ``seed`` and ``class_names`` in ``__init__``.
+    ``batch_size``, ``num_workers``, ``multiprocessing_context``, ``pin_memory``, ``seed`` and
+    ``class_names`` in ``__init__``.
     """
 
     _resume: tuple[int, int] | None = None
     _start_epoch: int = 0
     _num_workers: int | str = 0
-    multiprocessing_context: str | None = None
+    _multiprocessing_context: str | None = None
 
     @property
     def num_workers(self) -> int:
@@ -58,6 +72,15 @@ class PoseDataModule(pl.LightningDataModule):
     def num_workers_setting(self) -> int | str:
         """``num_workers`` as configured: an integer or ``"auto"``."""
         return self._num_workers
+
+    @property
+    def multiprocessing_context(self) -> str:
+        """How the workers start: the method set, or the default it resolves to (``forkserver`` on Linux)."""
+        return self._multiprocessing_context or DEFAULT_START_METHOD
+
+    @multiprocessing_context.setter
+    def multiprocessing_context(self, value: str | None) -> None:
+        self._multiprocessing_context = check_multiprocessing_context(value)
 
     def resume_within_epoch(self, epoch: int, batches_done: int) -> None:
         """Start training in ``epoch`` after its first ``batches_done`` batches (a checkpoint written
@@ -107,7 +130,7 @@ class PoseDataModule(pl.LightningDataModule):
             pin_memory=bool(self.pin_memory) and torch.cuda.is_available(),
             persistent_workers=workers > 0,
             worker_init_fn=init_worker if workers > 0 else None,
-            multiprocessing_context=self.multiprocessing_context if workers > 0 else None,
+            multiprocessing_context=worker_context(self._multiprocessing_context) if workers > 0 else None,
             collate_fn=collate_skipping_corrupt,
         )
 

@@ -240,6 +240,8 @@ class ModelNet10DataModule(PoseDataModule):
             ``num_workers`` an integer or ``"auto"`` (see :class:`~image2sphere.data.datamodule.PoseDataModule`).
         on_corrupt: ``"fail"`` or ``"skip"`` for records that do not decode.
         seed: seed of the validation split and of the shuffling.
+        multiprocessing_context: how loader workers start, ``"fork"``, ``"forkserver"`` or ``"spawn"``; ``None``:
+            ``forkserver`` on Linux (see :class:`~image2sphere.data.datamodule.PoseDataModule`).
 
     The constructor checks that the needed files are there, so a wrong ``dataset.root`` fails
     before the model is built.
@@ -257,6 +259,7 @@ class ModelNet10DataModule(PoseDataModule):
         pin_memory: bool = False,
         on_corrupt: str = "fail",
         seed: int = 0,
+        multiprocessing_context: str | None = None,
     ):
         super().__init__()
         if root is None or str(root) == "":
@@ -272,6 +275,7 @@ class ModelNet10DataModule(PoseDataModule):
         self.image_size = check_int("dataset.image_size", image_size, 1)
         self.batch_size = check_int("dataset.batch_size", batch_size, 1)
         self.num_workers = num_workers  # an integer >= 0 or "auto" (checked by PoseDataModule)
+        self.multiprocessing_context = multiprocessing_context  # fork, forkserver, spawn or None (checked)
         if not isinstance(pin_memory, bool):
             raise ValueError(f"dataset.pin_memory must be true or false, got {pin_memory!r}")
         self.pin_memory = pin_memory

@@ -67,7 +67,8 @@ class SymsolDataset(EpochDataset):
         return_all: return the full equivalent set with a mask (evaluation) instead of one label.
         image_size: images are resized to this square size when they differ.
         cache_images: decode every image once, up front in this process, and keep them in memory
-            (uint8, ``N * S * S * 3`` bytes; shared with forked workers). Otherwise images are decoded
+            (uint8, ``N * S * S * 3`` bytes; shared with the workers: inherited through ``fork``, as shared
+            memory under ``forkserver`` or ``spawn``). Otherwise images are decoded
             by ``__getitem__``, in the DataLoader workers.
         seed: seed of the label choice.
         on_corrupt: ``"fail"`` (raise, naming the file) or ``"skip"`` (log it; the item is ``None``
@@ -191,6 +192,8 @@ class SymsolDataModule(PoseDataModule):
             rendered once into ``root`` by :meth:`prepare_data` and reused afterwards.
         render_dir: where rendered sets are cached when ``root`` is ``None``.
         on_corrupt: ``"fail"`` or ``"skip"`` for images that do not decode.
+        multiprocessing_context: how loader workers start, ``"fork"``, ``"forkserver"`` or ``"spawn"``; ``None``:
+            ``forkserver`` on Linux (see :class:`~image2sphere.data.datamodule.PoseDataModule`).
     """
 
     def __init__(
@@ -211,6 +214,7 @@ class SymsolDataModule(PoseDataModule):
         render: dict | None = None,
         render_dir: str | None = None,
         on_corrupt: str = "fail",
+        multiprocessing_context: str | None = None,
     ):
         super().__init__()
         if shape is not None:
@@ -232,6 +236,7 @@ class SymsolDataModule(PoseDataModule):
         check_int("dataset.val_per_shape", val_per_shape, 0)
         check_int("dataset.batch_size", batch_size, 1)
         self.num_workers = num_workers  # an integer >= 0 or "auto" (checked by PoseDataModule)
+        self.multiprocessing_context = multiprocessing_context  # fork, forkserver, spawn or None (checked)
         self.render = dict(render) if render is not None else None
         if root is None:
             if self.render is None or render_dir is None:

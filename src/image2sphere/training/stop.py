@@ -196,15 +196,19 @@ def handle_signals(requeue_signals: Iterable[int] = (), grace: float = DEFAULT_G
     watchdog = _Watchdog(grace) if _REQUEST.depth == 1 else None
     for s in signums:
         signal.signal(s, _REQUEST.record)
+    exiting = False
     try:
         yield
+    except (SystemExit, KeyboardInterrupt):  # the process is ending (a stop, a second Ctrl-C)
+        exiting = True
+        raise
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler if handler is not None else signal.SIG_DFL)
         _REQUEST.depth -= 1
         _REQUEST.requeue_signums, _REQUEST.previous = outer
-        if watchdog is not None:
-            watchdog.disarm(keep_deadline=_REQUEST.signum is not None)
+        if watchdog is not None:  # a process that ends after a signal still ends within the grace
+            watchdog.disarm(keep_deadline=exiting and _REQUEST.signum is not None)
 
 
 class _Watchdog:
@@ -216,8 +220,9 @@ class _Watchdog:
     thread reads. From the first of the run's signals on it counts ``grace`` seconds: a stop that the
     ranks decided ends the process long before that (its last batch, its validation, one checkpoint); if
     the process is still alive then, it prints every thread's stack (where this rank was) and exits with
-    128 + the signal number. The deadline stays after the run's handlers are gone (a process stopped by a
-    signal may still hang at exit)."""
+    128 + the signal number. When the block ends by ending the process (``SystemExit``, as a decided stop
+    does, or ``KeyboardInterrupt``) after a signal, the deadline stays for the rest of the process's life
+    (it may still hang at exit); otherwise the thread ends with the block."""
 
     def __init__(self, grace: float):
         self.grace = grace

@@ -251,7 +251,9 @@ class _Watchdog:
                     if first is None and (number in self.signums or number in _REQUEST.requeue_signums):
                         first, deadline = number, time.monotonic() + self.grace
             if self._disarm_read in ready:
-                if first is None:
+                keep = os.read(self._disarm_read, 1) == b"k"
+                if first is None or not keep:
+                    self._close()  # this thread owns the descriptors: nothing reads them after this
                     return
                 watched = [self._read]  # no more signals come here; the deadline stays
             if deadline is not None and time.monotonic() >= deadline:
@@ -269,17 +271,14 @@ class _Watchdog:
         os._exit(128 + signum)
 
     def disarm(self, keep_deadline: bool) -> None:
-        """The run's handlers are gone: stop reading signals (a deadline already set stays when
-        ``keep_deadline``)."""
+        """The run's handlers are gone: stop reading signals; the thread ends unless a deadline was set and
+        ``keep_deadline``."""
         if self._thread is None:
             return
         with contextlib.suppress(ValueError):
             signal.set_wakeup_fd(self._previous_fd if self._previous_fd is not None else -1)
-        os.write(self._disarm_write, b"x")
-        if keep_deadline:  # the thread sleeps until the deadline, or the process ends first
-            return
-        self._thread.join(timeout=5)
-        self._close()
+        # the thread ends (and closes the descriptors) unless a deadline is set and kept
+        os.write(self._disarm_write, b"k" if keep_deadline else b"x")
 
     def _close(self) -> None:
         for fd in (self._read, self._write, self._disarm_read, self._disarm_write):

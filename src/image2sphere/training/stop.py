@@ -28,7 +28,10 @@ The rule
   decision at once (``read="all"``: before the recalibration, before the test, the test's end) come after
   every collective of the stage before them on every rank. The test gives every rank the same number of
   batches (:class:`~image2sphere.data.loading.ShardSampler` pads the shorter shares with empty slots), so
-  its per-batch points match as well.
+  its per-batch points match as well. The main group's own order is kept the same on every rank by
+  :class:`SyncEpochMetricsFirst`: the epoch's synced metrics are computed by every rank first thing at an
+  epoch's end, before any callback's collective (BatchNorm statistics) could meet rank 0's progress bar
+  syncing them.
 * **Where a stop lands.** A request is acted on at the first point that reads it: after the batch in
   progress, or, when it came in an epoch's last batch, its validation or its end, after the next epoch's
   first batch (its ``last.ckpt`` resumes exactly as any mid-epoch checkpoint; after the last epoch, the

@@ -34,6 +34,7 @@ from image2sphere.training.run_config import check_eval_config, command_line, ov
 from image2sphere.training.stop import (
     DEFAULT_GRACE_S,
     StopRequested,
+    close_decisions,
     exit_after_stop,
     handle_signals,
     use_flag_only_signals,
@@ -126,6 +127,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     with ddp_children_run_this_job(), handle_signals(grace=cfg.get("stop_grace_s", DEFAULT_GRACE_S)):
         try:
             trainer.test(model=module, datamodule=datamodule)
+            close_decisions()  # every rank: no decision is left in flight when the process ends
         except StopRequested as e:
             finish_loggers(loggers)
             name = signal.Signals(e.signum).name

@@ -36,6 +36,7 @@ from image2sphere.training.stop import (
     DEFAULT_GRACE_S,
     StopRequested,
     TrainingInterrupted,
+    close_decisions,
     decide_or_raise,
     exit_after_stop,
     handle_signals,
@@ -71,7 +72,9 @@ def train(cfg: DictConfig) -> dict[str, float]:
     together where to stop (:mod:`image2sphere.training.stop`).
     """
     with ddp_children_run_this_job(), handle_signals(requeue_signals(), cfg.get("stop_grace_s", DEFAULT_GRACE_S)):
-        return _train(cfg)
+        metrics = _train(cfg)
+        close_decisions()  # every rank, at its run's end: no decision is left in flight when the process ends
+        return metrics
 
 
 def _train(cfg: DictConfig) -> dict[str, float]:

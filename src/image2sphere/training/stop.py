@@ -319,10 +319,12 @@ class DecisionTimeout(RuntimeError):
 
 
 def exit_after_stop(signum: int, message: str) -> NoReturn:
-    """End the process after a stop the ranks decided together: rank 0 logs ``message`` (where it stopped,
-    what was kept, how to go on) and exits with 128 + ``signum``; the other ranks exit with 0 (a non-zero
+    """End the process after a stop the ranks decided together (:func:`close_decisions` first): rank 0 logs
+    ``message`` (where it stopped, what was kept, how to go on) and exits with 128 + ``signum``; the other
+    ranks exit with 0 (a non-zero
     exit of a rank that Lightning started makes it kill the others at once, rank 0 perhaps in the middle
     of a write)."""
+    close_decisions()  # every rank stops here alike: the decision still in flight completes on all of them
     if is_secondary_rank():
         raise SystemExit(0)
     log.warning(message)
@@ -426,7 +428,10 @@ def open_decisions(trainer: Any = None) -> _Decisions:
 
 
 def close_decisions() -> None:
-    """End this process's decisions before its process group is destroyed (every rank calls it)."""
+    """End this process's decisions: read the one still in flight (every rank sent it), end the thread and the
+    group. Every rank calls it at the same place, before its process ends or its process group is destroyed:
+    a process that ends while its thread waits inside gloo for a rank that has already gone aborts
+    (measured: "terminate called without an active exception", exit -6, 1 of 66 stops in the test)."""
     global _DECISIONS
     if _DECISIONS is not None:
         decisions, _DECISIONS = _DECISIONS, None

@@ -74,6 +74,25 @@ def pytest_xdist_auto_num_workers(config) -> int:
     return max(1, min(available_cpus(), MAX_WORKERS))
 
 
+def pytest_collection_modifyitems(config, items) -> None:
+    """The longest work first, so that the parallel test processes end together. pytest-xdist's
+    ``worksteal`` hands each process a contiguous share of this order and, when one runs dry, moves the
+    *end* of another's share to it: a long test there runs alone at the end while the other CPUs idle
+    (measured on 2 cores: a 100 s training test ran last, 80 s after the other process had finished). The
+    modules with the most slow tests come first, each with its slow tests ahead of its quick ones; a
+    module's tests stay together (its module-scoped fixtures are built once per process) and keep their
+    order otherwise."""
+    modules: dict[str, list] = {}
+    for item in items:
+        modules.setdefault(item.nodeid.split("::")[0], []).append(item)
+
+    def slow(item) -> bool:
+        return item.get_closest_marker("slow") is not None
+
+    order = sorted(modules.values(), key=lambda tests: -sum(map(slow, tests)))  # stable: ties keep their order
+    items[:] = [item for tests in order for item in sorted(tests, key=lambda item: not slow(item))]
+
+
 def _share_the_cores() -> None:
     """In a worker of ``-n N``: torch's intra-op threads are the worker's share of the CPUs, so that N
     workers do not each start a pool as large as the machine (measured on 2 cores: the quick tier takes

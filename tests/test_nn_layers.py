@@ -164,20 +164,23 @@ def test_activation_buffers_are_not_saved():
 
 
 def test_relu_layers_share_the_grid_built_once_and_compute_as_e3nns_own(gen):
-    """Quick. The grid's Wigner matrices are built once per (lmax, resolution, dtype) and shared by every
-    layer; each layer is still its own module (moving one leaves the others) and computes exactly what a
-    freshly built e3nn ``SO3Activation`` does."""
+    """Quick. The grid's Wigner matrices are built once per (lmax, resolution, dtype), shared by every layer
+    and by the input and output grid of a layer; each layer is still its own module (moving one leaves the
+    others). In float64 a layer computes what a freshly built e3nn ``SO3Activation`` does (to rounding); in float32
+    its matrices are the float64 ones rounded once (e3nn's own float32 matrices carry errors of 1e-5 to 1e-4,
+    so the two float32 outputs agree to that)."""
     from e3nn.nn import SO3Activation
 
     from image2sphere.so3.wigner import default_dtype
 
     a, b = SO3ReLU(2, 3), SO3ReLU(2, 3)
-    assert a.act is not b.act and a.act.grid_in.D is b.act.grid_in.D
-    x = torch.randn(4, n_so3_coeffs(2), generator=gen)
-    torch.testing.assert_close(a(x), SO3Activation(2, 2, torch.relu, 3)(x), rtol=0, atol=0)
+    assert a.act is not b.act and a.act.grid_in.D is b.act.grid_in.D is b.act.grid_out.D
     b.to(torch.float64)
     assert b.act.grid_in.D.dtype == torch.float64 and a.act.grid_in.D.dtype == torch.float32
     with default_dtype(torch.float64):
         c, reference = SO3ReLU(2, 3), SO3Activation(2, 2, torch.relu, 3)  # built in the default dtype
     assert c.act.grid_in.D.dtype == torch.float64
-    torch.testing.assert_close(c(x.double()), reference(x.double()), rtol=0, atol=0)
+    x = torch.randn(4, n_so3_coeffs(2), generator=gen)
+    torch.testing.assert_close(c(x.double()), reference(x.double()), rtol=0, atol=1e-13)
+    torch.testing.assert_close(a.act.grid_in.D, reference.grid_in.D.float(), rtol=0, atol=1e-7)
+    torch.testing.assert_close(a(x), SO3Activation(2, 2, torch.relu, 3)(x), rtol=1e-4, atol=1e-4)

@@ -15,6 +15,7 @@ from image2sphere.so3 import (
     check_lmax,
     flat_wigner,
     flat_wigner_from_angles,
+    flat_wigner_on_euler_grid,
     left_translate_so3_coeffs,
     lmax_from_n_so3_coeffs,
     matrix_to_angles,
@@ -156,6 +157,24 @@ def test_flat_wigner_from_angles_consistent():
     # broadcasting of the angles
     out = flat_wigner_from_angles(2, a[:, None], b[None, :5], torch.zeros(()))
     assert out.shape == (30, 5, 35)
+
+
+def test_flat_wigner_on_a_product_grid_is_e3nns_at_every_point():
+    """Quick. The product grid's matrices, composed from each angle's own, against e3nn's ``wigner_D`` at
+    every point (irregular angles of three different counts) in float64, and rounded once in float32."""
+    g = torch.Generator().manual_seed(0)
+    alpha, beta, gamma = (torch.rand(n, generator=g, dtype=torch.float64) * 2 * math.pi for n in (5, 3, 4))
+    grid = flat_wigner_on_euler_grid(5, alpha, beta, gamma)  # [5, 3, 4, n]
+    assert grid.shape == (5, 3, 4, n_so3_coeffs(5)) and grid.dtype == torch.float64
+    A, B, C = torch.meshgrid(alpha, beta, gamma, indexing="ij")
+    with default_dtype(torch.float64):
+        expected = torch.cat([math.sqrt(2 * l + 1) * o3.wigner_D(l, A, B, C).flatten(-2) for l in range(6)], -1)
+    torch.testing.assert_close(grid, expected, rtol=0, atol=1e-12)
+    single = flat_wigner_on_euler_grid(5, alpha.float(), beta.float(), gamma.float())
+    assert single.dtype == torch.float32
+    torch.testing.assert_close(single, expected.float(), rtol=0, atol=1e-5)  # float32 angles, then rounded once
+    with pytest.raises(ValueError, match=r"beta must have shape \(n,\), got \(3, 1\)"):
+        flat_wigner_on_euler_grid(2, alpha, beta[:, None], gamma)
 
 
 def test_identity_and_l1():

@@ -6,26 +6,40 @@ import copy
 
 import torch
 from e3nn.nn import SO3Activation
+from e3nn.o3 import s2_grid
 from torch import nn
 
 from image2sphere.checks import check_int
 from image2sphere.precision import constant_cache
-from image2sphere.so3.wigner import check_lmax, default_dtype
+from image2sphere.so3.wigner import check_lmax, default_dtype, flat_wigner_on_euler_grid
 
 __all__ = ["SO3ReLU", "default_relu_resolution"]
 
 
 @constant_cache(maxsize=8)
 def _relu_on_grid(lmax: int, resolution: int, dtype: torch.dtype) -> SO3Activation:
-    """e3nn's ReLU on its SO(3) grid, built once per process and setting: its Wigner matrices (two
-    grids per layer, each 2.5 s of one CPU thread at lmax 6 and resolution 8, 12 s at lmax 10) are the
-    same for every layer and every network. ``dtype``: the default dtype the grid is built in (part of
-    the cache key)."""
+    """e3nn's ReLU on its SO(3) grid, built once per process and setting, and shared by every layer and
+    network of that setting. ``dtype``: the default dtype the grid is built in (part of the cache key).
+
+    The module is e3nn's own (its grid's angles and quadrature weights, its normalised ReLU, its
+    ``to_grid`` and ``from_grid``), built at degree 0; its Wigner matrices up to ``lmax`` come from
+    :func:`flat_wigner_on_euler_grid` (the same numbers, from each angle's matrices: under a second where
+    e3nn's constructor takes about 2.5 s of a CPU thread at lmax 6 and resolution 8 and over 20 s at lmax 10
+    and resolution 12, for each of its two grids), and its input and output grids share one tensor (the
+    same lmax and resolution: 390 MB once instead of twice at lmax 10 in float32)."""
     with default_dtype(dtype):
-        act = SO3Activation(lmax, lmax, torch.relu, resolution)
-    for grid in (act.grid_in, act.grid_out):
-        for name, buf in list(grid.named_buffers(recurse=False, remove_duplicate=False)):
-            grid.register_buffer(name, buf, persistent=False)  # constants: kept out of checkpoints
+        act = SO3Activation(0, 0, torch.relu, resolution)
+    grid = act.grid_in
+    with default_dtype(torch.float64):  # the grid's angles at full precision (e3nn.o3.SO3Grid's formula)
+        beta, alpha = s2_grid(grid.res_beta, grid.res_alpha)
+    wigner = flat_wigner_on_euler_grid(lmax, alpha, beta, alpha, dtype=dtype)  # [alpha, beta, gamma, n_so3]
+    for g in (act.grid_in, act.grid_out):
+        if g.res_alpha != g.res_gamma or g.D.shape[:3] != wigner.shape[:3]:  # e3nn's layout, checked once
+            raise RuntimeError(f"e3nn's SO3Grid changed its layout: {tuple(g.D.shape)}")
+        g.register_buffer("D", wigner, persistent=False)
+        for name, buf in list(g.named_buffers(recurse=False, remove_duplicate=False)):
+            g.register_buffer(name, buf, persistent=False)  # constants: kept out of checkpoints
+    act.lmax_in = act.lmax_out = lmax
     return act
 
 

@@ -27,6 +27,7 @@ __all__ = [
     "degree_scale",
     "flat_wigner",
     "flat_wigner_from_angles",
+    "flat_wigner_on_euler_grid",
     "left_translate_so3_coeffs",
     "lmax_from_n_so3_coeffs",
     "n_s2_coeffs",
@@ -140,6 +141,38 @@ def flat_wigner_from_angles(lmax: int, alpha: torch.Tensor, beta: torch.Tensor, 
         for l in range(lmax + 1)
     ]
     return torch.cat(blocks, dim=-1)
+
+
+def flat_wigner_on_euler_grid(
+    lmax: int, alpha: torch.Tensor, beta: torch.Tensor, gamma: torch.Tensor, dtype: torch.dtype | None = None
+) -> torch.Tensor:
+    """:func:`flat_wigner_from_angles` on the product grid ``alpha x beta x gamma``: ``[A, B, C, n_so3_coeffs]``,
+    entry ``[a, b, c]`` being that of the angles ``(alpha[a], beta[b], gamma[c])`` (the layout of e3nn's
+    ``SO3Grid.D``).
+
+    Built from each angle's own matrices, ``D(alpha, beta, gamma) = D(alpha, 0, 0) D(0, beta, 0) D(0, 0, gamma)``
+    (the YXY angles compose, as e3nn defines them): ``(2l+1)^3`` products per grid point and degree, in float64,
+    instead of e3nn's matrix exponential at every point (``SO3Grid`` takes tens of seconds of a CPU thread at
+    lmax 10). ``alpha``, ``beta``, ``gamma``: 1-D; ``dtype``: of the result (default: the angles', at least
+    float32).
+    """
+    lmax = check_lmax(lmax)
+    for name, angles in (("alpha", alpha), ("beta", beta), ("gamma", gamma)):
+        if angles.ndim != 1:
+            raise ValueError(f"{name} must have shape (n,), got {tuple(angles.shape)}")
+    dtype = torch.promote_types(alpha.dtype, torch.float32) if dtype is None else dtype
+    alpha, beta, gamma = (a.to(torch.float64) for a in (alpha, beta, gamma))
+    zero = torch.zeros((), dtype=torch.float64, device=alpha.device)
+    out = torch.empty(len(alpha), len(beta), len(gamma), n_so3_coeffs(lmax), dtype=dtype, device=alpha.device)
+    for l, block in so3_blocks(lmax):
+        Da = wigner_D(l, alpha, zero, zero)  # [A, d, d]
+        Db = wigner_D(l, zero, beta, zero)  # [B, d, d]
+        Dg = wigner_D(l, zero, zero, gamma)  # [C, d, d]
+        Dab = torch.einsum("aij,bjk->abik", Da, Db)  # [A, B, d, d]
+        Dg = math.sqrt(2 * l + 1) * Dg
+        for a in range(len(alpha)):  # one alpha at a time: [B, C, d, d] in float64 at most
+            out[a, ..., block] = torch.einsum("bik,ckm->bcim", Dab[a], Dg).flatten(-2)  # [B, C, d^2]
+    return out
 
 
 def flat_wigner(lmax: int, rotations: torch.Tensor) -> torch.Tensor:

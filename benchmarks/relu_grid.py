@@ -41,7 +41,8 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     dtype = getattr(torch, args.dtype)
     print(f"# {torch.get_num_threads()} threads, torch {torch.__version__}, {args.dtype}")
-    print(f"{'lmax':>4} {'res':>4} {'e3nn s':>8} {'ours s':>8} {'ratio':>7} {'max |diff|':>11} {'e3nn MB':>8} {'ours MB':>8}")
+    header = ("lmax", 4), ("res", 4), ("e3nn s", 8), ("ours s", 8), ("ratio", 7), ("max |diff|", 11), ("e3nn MB", 8)
+    print(" ".join(f"{name:>{width}}" for name, width in header), f"{'ours MB':>8}")
     start = time.perf_counter()
     for lmax in (int(v) for v in args.lmax.split(",")):
         resolution = default_relu_resolution(lmax)

@@ -288,6 +288,53 @@ def test_a_sigterm_during_a_hung_collective_ends_the_process_within_the_grace():
     assert "barrier" in err  # where the main thread was
 
 
+AFTER_A_STOP = """
+import atexit, os, signal, sys, time
+from image2sphere.training import stop
+caught = sys.argv[1] == "caught"
+if not caught:
+    atexit.register(time.sleep, 600)  # an exit function that never returns (as one joining a stuck worker)
+try:
+    with stop.handle_signals(grace=2):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.2)
+        raise SystemExit(128 + signal.SIGTERM)  # what a decided stop raises
+except SystemExit:
+    if not caught:
+        raise
+print("caught", flush=True)
+time.sleep(4)  # past the grace: a program that caught the stop goes on
+print("alive", flush=True)
+"""
+
+
+@pytest.mark.slow
+def test_after_a_stop_a_hung_exit_ends_within_the_grace_and_a_caught_one_goes_on():
+    """A stop ends its block with SystemExit. A process that then hangs on its way out (an exit function
+    that never returns) still ends 2 s after the signal (stop_grace_s), with 143; a program that catches the
+    SystemExit (a test harness running the entry point in-process, IPython's %run) is not ended later."""
+    import subprocess
+
+    procs = {case: subprocess.Popen([sys.executable, "-c", AFTER_A_STOP, case], stdout=subprocess.PIPE,
+                                    stderr=subprocess.PIPE, text=True, start_new_session=True)
+             for case in ("exiting", "caught")}  # fmt: skip
+    started = time.monotonic()
+    try:
+        results = {case: p.communicate(timeout=120) for case, p in procs.items()}
+        seconds = time.monotonic() - started  # both started together; each imports torch and Lightning
+    finally:
+        for p in procs.values():
+            if group_alive(p.pid):
+                os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    out, err = results["caught"]
+    assert procs["caught"].returncode == 0 and out.split() == ["caught", "alive"], err[-3000:]
+    out, err = results["exiting"]
+    assert procs["exiting"].returncode == 128 + signal.SIGTERM, err[-3000:]
+    assert "SIGTERM was received 2 s ago" in err and "stop_grace_s" in err
+    assert seconds < 100, seconds  # not the exit function's 600 s
+
+
 # ------------------------------------------------------------------ Lightning's own handling switched off
 def test_lightning_installs_no_handler_and_never_stops_one_rank_by_itself():
     trainer = pl.Trainer(accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False)

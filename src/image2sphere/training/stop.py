@@ -179,7 +179,8 @@ def handle_signals(requeue_signals: Iterable[int] = (), grace: float = DEFAULT_G
     """For the duration of the block, SIGINT, SIGTERM and ``requeue_signals`` only record a request that
     :func:`decide` reads; the previous handlers come back afterwards (a requeue signal's previous handler
     is also what :func:`requeue_job` calls). After the first of these signals the process ends within
-    ``grace`` seconds, if need be without a checkpoint (:class:`_Watchdog`). A block inside another keeps
+    ``grace`` seconds, if need be without a checkpoint (:class:`_Watchdog`), unless the program catches
+    the stop's ``SystemExit`` and goes on. A block inside another keeps
     the outer one's request and handlers and adds its own requeue signals for its duration. Outside the
     main thread (where Python allows no handlers) it does nothing."""
     grace = _check_grace(grace)
@@ -224,8 +225,11 @@ class _Watchdog:
     ranks decided ends the process long before that (its last batch, its validation, one checkpoint); if
     the process is still alive then, it prints every thread's stack (where this rank was) and exits with
     128 + the signal number. When the block ends by ending the process (``SystemExit``, as a decided stop
-    does, or ``KeyboardInterrupt``) after a signal, the deadline stays for the rest of the process's life
-    (it may still hang at exit); otherwise the thread ends with the block."""
+    does, or ``KeyboardInterrupt``) after a signal, the deadline stays: the process may still hang on its
+    way out (an exit function joining loader workers, a thread that never ends). It then applies to an
+    interpreter that is shutting down (its main thread has ended); a program whose main thread still runs at
+    the deadline caught the ``SystemExit`` and went on (a test harness, IPython's ``%run``), and is left
+    alone. Otherwise the thread ends with the block."""
 
     def __init__(self, grace: float):
         self.grace = grace
@@ -244,7 +248,7 @@ class _Watchdog:
         self._thread.start()
 
     def _watch(self) -> None:
-        first, deadline = None, None
+        first, deadline, kept = None, None, False
         watched = [self._read, self._disarm_read]
         while True:
             wait = None if deadline is None else max(0.0, deadline - time.monotonic())
@@ -258,8 +262,14 @@ class _Watchdog:
                 if first is None or not keep:
                     self._close()  # this thread owns the descriptors: nothing reads them after this
                     return
-                watched = [self._read]  # no more signals come here; the deadline stays
+                watched, kept = [self._read], True  # no more signals come here; the deadline stays
             if deadline is not None and time.monotonic() >= deadline:
+                if kept and threading.main_thread().is_alive():
+                    # The stop's SystemExit left the block long ago and the program still runs: its caller
+                    # caught it and went on (a test harness, IPython's %run). Only an interpreter that is
+                    # shutting down (its main thread has ended: exit functions, thread joins) is ended.
+                    self._close()
+                    return
                 self._end(first)
 
     def _end(self, signum: int) -> NoReturn:

@@ -578,3 +578,32 @@ def test_run_ids_of_one_process_in_the_same_second_differ_and_each_run_keeps_its
     names = [first.dir, first.dir, second.dir, second.dir]
     assert names[0] == names[1] == f"runs/{stamp}_{os.getpid()}"
     assert names[2] == names[3] == f"runs/{stamp}_{os.getpid()}_2"
+
+
+def test_the_suites_parse_cache_composes_what_hydra_parses_and_rereads_a_changed_file(tmp_path, monkeypatch):
+    """tests/conftest.py keeps each config file's parse per test process: every compose must equal Hydra's
+    own (no edit of one compose leaks into the next), and a file whose bytes change is parsed again."""
+    import sys
+
+    from hydra import initialize_config_dir
+
+    FileConfigSource = sys.modules["hydra._internal.core_plugins.file_config_source"].FileConfigSource
+    cached = FileConfigSource.load_config
+    assert hasattr(cached, "uncached"), "conftest's parse cache is not installed"
+
+    def composed(config_dir: Path, name: str, overrides: list[str]) -> str:
+        GlobalHydra.instance().clear()
+        with initialize_config_dir(config_dir=str(config_dir), version_base="1.3"):
+            return OmegaConf.to_yaml(compose(name, overrides=overrides, return_hydra_config=True))
+
+    for overrides in ([], ["table=table1"], ["model=ipdf", "dataset=modelnet10", "lmax=4"]):
+        first, again = composed(CONF, "train", overrides), composed(CONF, "train", overrides)
+        with monkeypatch.context() as m:
+            m.setattr(FileConfigSource, "load_config", cached.uncached)
+            assert first == again == composed(CONF, "train", overrides), overrides
+    conf = tmp_path / "conf"
+    conf.mkdir()
+    (conf / "run.yaml").write_text("defaults:\n  - _self_\nvalue: 1\n")
+    assert "value: 1" in composed(conf, "run", [])
+    (conf / "run.yaml").write_text("defaults:\n  - _self_\nvalue: 2\n")  # the same size, maybe the same mtime
+    assert "value: 2" in composed(conf, "run", [])

@@ -4,6 +4,8 @@ that every table file launches on the fixtures of the published datasets and can
 
 from __future__ import annotations
 
+import copy
+import functools
 import json
 import sys
 from collections.abc import Sequence
@@ -52,26 +54,41 @@ def test_command_line_wins_over_the_grid_and_a_command_line_sweep_multiplies():
     ]  # booleans as Hydra writes them
 
 
+# The tables' jobs are composed by several tests here and in test_documented_commands (a sweep directory
+# for each table command): each table's grid and each job's config are composed once per test process
+# (the configs do not change during a session) and handed out as copies.
 def table_jobs(table: str, arguments: Sequence[str] = ()) -> list[list[str]]:
     """The jobs of ``table=<table>`` by job number; ``arguments``: the command line's other (non-hydra)
     overrides, which the sweeper appends to every job."""
+    params, grids = _table_grids(table)
+    return expand_grids(PARSER, copy.deepcopy(params), copy.deepcopy(grids), list(arguments))
+
+
+@functools.cache
+def _table_grids(table: str) -> tuple[dict, list]:
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         cfg = compose("train", overrides=[f"table={table}"], return_hydra_config=True)
     sweeper = cfg.hydra.sweeper
     assert sweeper._target_.endswith("TableSweeper") and cfg.hydra.mode.name == "MULTIRUN"
-    params, grids = OmegaConf.to_container(sweeper.params), OmegaConf.to_container(sweeper.grids)
-    return expand_grids(PARSER, params, grids, list(arguments))
+    return OmegaConf.to_container(sweeper.params), OmegaConf.to_container(sweeper.grids)
 
 
 def composed_run(table: str, job: list[str], index: int) -> Run:
     """What the job's run directory will say it was (its group choices and config), as src.tables reads it."""
+    choices, config = _composed_job(table, tuple(job))
+    return Run(path=Path(f"{table}/{index}"), metrics={"acc15": 0.5}, choices=copy.deepcopy(choices),
+               config=copy.deepcopy(config), overrides=list(job))  # fmt: skip
+
+
+@functools.cache
+def _composed_job(table: str, job: tuple[str, ...]) -> tuple[dict, dict]:
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         cfg = compose("train", overrides=[f"table={table}", *job], return_hydra_config=True)
     choices = OmegaConf.to_container(cfg.hydra.runtime.choices)
     config = OmegaConf.to_container(cfg, resolve=False)
     config.pop("hydra")
     assert config["task_name"] == table.replace("/", "_")  # small/table7 runs as small_table7
-    return Run(path=Path(f"{table}/{index}"), metrics={"acc15": 0.5}, choices=choices, config=config, overrides=job)
+    return choices, config
 
 
 @pytest.mark.parametrize("table", TABLES)

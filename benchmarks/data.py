@@ -30,7 +30,7 @@ Usage::
 
     python benchmarks/data.py                                   # every reader, 224 px, batch 32, workers 0 and auto
     python benchmarks/data.py --readers modelnet10,pascal3d --workers 6 --seconds 20
-    OMP_NUM_THREADS=1 python benchmarks/data.py --quick         # smoke run (batch 8, 2 s per reader; < 2 min)
+    OMP_NUM_THREADS=1 python benchmarks/data.py --quick         # smoke run (batch 8, 0.5 s per reader; < 1 min)
 """
 
 from __future__ import annotations
@@ -71,7 +71,7 @@ READERS = {
 # fixture sizes: images per shape (SYMSOL), instances per class x views (ModelNet10), images per list (PASCAL3D+)
 SIZES = {"full": {"symsol": 32, "modelnet_views": 8, "pascal": 4, "renders": 64},
          "quick": {"symsol": 8, "modelnet_views": 2, "pascal": 2, "renders": 16}}  # fmt: skip
-QUICK = {"batch_size": 8, "seconds": 2.0, "steps": 2}
+QUICK = {"batch_size": 8, "seconds": 0.5, "steps": 2}
 REPEATED_LENGTH = 50_000  # indices of the long epoch the loaders are timed on
 
 

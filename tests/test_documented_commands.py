@@ -1069,10 +1069,7 @@ def _param(command: Command):
     words = shlex.split(command.text)
     if not runs_for_real(command):  # composed and checked only: quick
         return pytest.param(command, id=command.text)
-    slow = words[:2] in (["python", "benchmarks/grid_eval.py"], ["python", "benchmarks/table_cost.py"],
-                         ["python", "benchmarks/data.py"], ["python", "benchmarks/projection_noise.py"],
-                         ["python", "benchmarks/train_step.py"],
-                         ["python", "benchmarks/batchnorm_statistics.py"])  # fmt: skip
+    slow = words[0] == "python" and len(words) > 1 and words[1].startswith("benchmarks/")  # every benchmark
     slow = slow or not any(w.startswith("README.md:") for w in command.where) and _first_words(command.text) == "python"
     slow = slow or needs_own_process(words)  # DDP and the joblib launcher: processes of their own
     if words[:3] == ["python", "-m", "src.train"] and not any(PRETRAINED.match(w) for w in words):

@@ -125,8 +125,6 @@ def test_ddp_metrics_equal_one_process_on_the_same_weights(ddp_run, tmp_path):
     assert_same_metrics(read_metrics(two), single)  # src.eval on two processes
 
 
-# src.eval's evaluate() run again and again by the same two processes (started as a launcher such as
-# torchrun starts them), one test split and batch size after another
 # The split matrix evaluates in float64. In float32 the images a batch holds change the last bits of every
 # image's grid values (the encoder's kernels depend on the batch size), and this untrained network's grid
 # values are nearly flat: measured on its 199-image split, 25 images have their two best grid points within
@@ -135,7 +133,9 @@ def test_ddp_metrics_equal_one_process_on_the_same_weights(ddp_run, tmp_path):
 # image counts as within 15 degrees then depends on the batching, not on the sharding this test is about.
 # In float64 the same images give the same estimate at every batch size, so that every metric, counts and
 # HDR coverage included, is compared with one process's.
-F64 = "trainer.precision=64-true"
+F64 = "trainer.precision=64-true"  # also written out in SPLITS_SCRIPT, which runs in processes of its own
+# src.eval's evaluate() run again and again by the same two processes (started as a launcher such as
+# torchrun starts them), one test split and batch size after another
 SPLITS_SCRIPT = """
 import json, os, sys
 import image2sphere

@@ -5,11 +5,14 @@ The network is ``conf/model/i2s.yaml`` composed as a training run composes it (`
 dataset.image_size=224``; random weights), the paper's batch of 64, the loss on the training grid
 (``model.train_grid_level``, 3). Measured in one run:
 
-1. **training step** (forward, loss, backward, SGD step with Nesterov momentum) in float32 and under
-   ``torch.autocast(dtype=torch.bfloat16)``, as ``trainer.precision=bf16-mixed`` runs it: the median of
-   ``--repeats`` steps after ``--warmup`` untimed ones; images per second and the bf16 / float32 ratio.
-   The two losses of the same batch and weights are printed side by side: the SO(3) head runs in float32
-   under autocast, so they differ only by the encoder's rounding;
+1. **training step** (forward, loss, backward, and the paper's optimiser as ``conf/optimizer/sgd.yaml``
+   builds it: SGD with Nesterov momentum, ``fused: true``) in float32 and under
+   ``torch.autocast(dtype=torch.bfloat16)``, as ``trainer.precision=bf16-mixed`` runs it, and in float32
+   with the optimiser unfused (``fused=False``: PyTorch's default, one kernel per weight tensor): the median
+   of ``--repeats`` steps after ``--warmup`` untimed ones; images per second, the bf16 / float32 and the
+   fused / unfused ratios, and the optimiser's update alone in both forms. The losses of the same batch and
+   weights are printed side by side: the SO(3) head runs in float32 under autocast, so they differ only by
+   the encoder's rounding;
 2. **evaluation** of the level-5 grid (2,359,296 rotations) for a batch: ``grid_logsumexp_and_max(5)``
    (the normaliser and the mode, what the test loop computes per image), median per image; the first
    call, which builds the grid evaluator, is timed apart.
@@ -83,7 +86,9 @@ def main() -> None:
     print(f"I2S, {args.encoder} at {args.image_size} px, batch {args.batch}\n")
 
     with tempfile.TemporaryDirectory() as tmp:
-        cfg = compose_cfg(Path(tmp), ["model=i2s", f"encoder={args.encoder}", f"dataset.image_size={args.image_size}"])
+        overrides = ["model=i2s", "optimizer=sgd", f"encoder={args.encoder}", f"dataset.image_size={args.image_size}"]
+        cfg = compose_cfg(Path(tmp), overrides)
+    optimizer = instantiate(cfg.model.optimizer)  # a partial: called with the parameters
     grid_level = int(cfg.model.train_grid_level)
     torch.manual_seed(0)
     net = instantiate(cfg.model.net).to(device)
@@ -92,11 +97,12 @@ def main() -> None:
     rotations = random_rotations(args.batch).to(device)
     state = {k: v.detach().clone() for k, v in net.state_dict().items()}
 
-    results = {}
-    for label, dtype in (("float32", None), ("bf16 autocast", torch.bfloat16)):
+    results, updates = {}, {}
+    cases = (("float32", None, True), ("bf16 autocast", torch.bfloat16, True), ("float32 unfused", None, False))
+    for label, dtype, fused in cases:
         net.load_state_dict(state)
         net.train()
-        opt = torch.optim.SGD(net.parameters(), lr=1e-3, momentum=0.9, nesterov=True)
+        opt = optimizer(params=net.parameters(), fused=fused)
         ctx = (lambda d=dtype: torch.autocast(device.type, dtype=d)) if dtype is not None else nullcontext
 
         def step(ctx=ctx, opt=opt):
@@ -111,11 +117,18 @@ def main() -> None:
             first_loss = float(loss_fn(net(images), rotations, grid_level).mean())
         seconds = timed(step, device, args.repeats, args.warmup)
         results[label] = seconds
+        if dtype is None:  # the update alone, on the gradients the last step left
+            updates[fused] = timed(opt.step, device, args.repeats, args.warmup)
         print(
-            f"training step, {label:13s}: {seconds * 1e3:8.1f} ms  ({args.batch / seconds:7.1f} images/s)"
+            f"training step, {label:15s}: {seconds * 1e3:8.1f} ms  ({args.batch / seconds:7.1f} images/s)"
             f"  loss of the first batch {first_loss:.5f}"
         )
-    print(f"bf16 / float32 step time: {results['bf16 autocast'] / results['float32']:.2f}x\n")
+    print(f"bf16 / float32 step time: {results['bf16 autocast'] / results['float32']:.2f}x")
+    print(
+        f"fused / unfused optimiser: {results['float32'] / results['float32 unfused']:.2f}x the training step, "
+        f"{updates[True] / updates[False]:.2f}x the update alone ({updates[True] * 1e3:.1f} ms against "
+        f"{updates[False] * 1e3:.1f} ms)\n"
+    )
 
     net.eval()
     with torch.no_grad():

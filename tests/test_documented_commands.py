@@ -1118,6 +1118,7 @@ def test_documented_command(command: Command, fixtures_root, checkpoint_run, tmp
         out = proc.stdout
         assert proc.returncode == 0 and "bf16 / float32 step time:" in out, describe(argv, proc)
         assert "training step, float32" in out and "level-3 evaluation" in out, out
+        assert "training step, float32 unfused" in out and "fused / unfused optimiser:" in out, out
         return
     if args[0] == "benchmarks/batchnorm_statistics.py":  # to the end, one timed repeat of each
         proc = run_in(ws, [*argv, "--repeats", "1", "--warmup", "1"], timeout=600)

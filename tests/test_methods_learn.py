@@ -45,7 +45,7 @@ def test_training_loss_falls_when_overfitting_a_few_images(tmp_path, model, imag
     torch.manual_seed(0)
     net = instantiate(cfg.model.net)
     net.train()
-    optimizer = torch.optim.Adam(net.parameters(), lr=1e-3)
+    optimizer = instantiate(cfg.model.optimizer)(params=net.parameters())  # the run's: Adam, lr 1e-3, fused
     losses = []
     for _ in range(STEPS):
         loss = net.loss(net(images), rotations, 2).mean()

@@ -29,7 +29,7 @@ def test_fast_dev_run_through_entry_point(tmp_path, data_dir):
     # the start-up log says what the run trains and which protocol the dataset brought
     log = proc.stdout + proc.stderr
     assert "This run trains (dataset=symsol_rendered brings protocol=symsol_rendered" in log
-    assert "optimizer  adam: Adam(lr=0.001, weight_decay=0.0)  [protocol=symsol_rendered]" in log
+    assert "optimizer  adam: Adam(lr=0.001, weight_decay=0.0, fused=True)  [protocol=symsol_rendered]" in log
     metrics = read_metrics(tmp_path / "run")
     assert {"log_likelihood/cube", "log_likelihood/cone", "spread_deg", "acc15", "median_error_deg"} <= set(metrics)
     assert metrics["n_images"] > 0

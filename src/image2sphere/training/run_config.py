@@ -137,10 +137,29 @@ def check_train_config(cfg: DictConfig) -> None:
             f"model.net.image_size={net_size} but dataset.image_size={data_size}: the network takes images of the "
             "size it was built for; set both to the same value"
         )
+    _check_fused_clipping(cfg)
     max_epochs = OmegaConf.select(cfg, "trainer.max_epochs")
     valid_epochs = type(max_epochs) is int and (max_epochs >= 1 or max_epochs == -1)  # bool is not a count
     if max_epochs is not None and not valid_epochs:
         raise ValueError(f"trainer.max_epochs must be an integer >= 1 (or -1: no limit), got {max_epochs!r}")
+
+
+# Lightning's mixed-precision plugins ("16" and "bf16" are the older names)
+MIXED_PRECISION = ("16-mixed", "bf16-mixed", "16", "bf16")
+
+
+def _check_fused_clipping(cfg: DictConfig) -> None:
+    """A fused optimiser (``conf/optimizer/``) unscales mixed precision's gradients inside its own step, so
+    Lightning cannot clip them before it: refuse the three together at start-up instead of at the first step."""
+    clip = OmegaConf.select(cfg, "trainer.gradient_clip_val")
+    precision = str(OmegaConf.select(cfg, "trainer.precision", default="32-true"))
+    fused = OmegaConf.select(cfg, "model.optimizer.fused", default=False)
+    if fused is True and clip and precision in MIXED_PRECISION:
+        raise ValueError(
+            f"model.optimizer.fused=true cannot clip gradients under trainer.precision={precision} "
+            f"(trainer.gradient_clip_val={clip}): a fused optimiser unscales the gradients inside its step, after "
+            "the clipping; set model.optimizer.fused=false to clip, or drop trainer.gradient_clip_val"
+        )
 
 
 def check_eval_config(cfg: DictConfig) -> None:

@@ -6,13 +6,13 @@ dataset.image_size=224``; random weights), the paper's batch of 64, the loss on 
 (``model.train_grid_level``, 3). Measured in one run:
 
 1. **training step** (forward, loss, backward, and the paper's optimiser as ``conf/optimizer/sgd.yaml``
-   builds it: SGD with Nesterov momentum, ``fused: true``) in float32 and under
-   ``torch.autocast(dtype=torch.bfloat16)``, as ``trainer.precision=bf16-mixed`` runs it, and in float32
-   with the optimiser unfused (``fused=False``: PyTorch's default, one kernel per weight tensor): the median
-   of ``--repeats`` steps after ``--warmup`` untimed ones; images per second, the bf16 / float32 and the
-   fused / unfused ratios, and the optimiser's update alone in both forms. The losses of the same batch and
-   weights are printed side by side: the SO(3) head runs in float32 under autocast, so they differ only by
-   the encoder's rounding;
+   builds it: SGD with Nesterov momentum, ``fused: true``; ``--optimizer adam``: the built-in run's) in
+   float32 and under ``torch.autocast(dtype=torch.bfloat16)``, as ``trainer.precision=bf16-mixed`` runs
+   it, and in float32 with the optimiser unfused (``fused=False``: PyTorch's default, one kernel per
+   weight tensor): the median of ``--repeats`` steps after ``--warmup`` untimed ones, the cases taking
+   turns step by step; images per second, the bf16 / float32 and the fused / unfused ratios, and the
+   optimiser's update alone. The losses of the same batch and weights are printed side by side: the SO(3)
+   head runs in float32 under autocast, so they differ only by the encoder's rounding;
 2. **evaluation** of the level-5 grid (2,359,296 rotations) for a batch: ``grid_logsumexp_and_max(5)``
    (the normaliser and the mode, what the test loop computes per image), median per image; the first
    call, which builds the grid evaluator, is timed apart.
@@ -23,6 +23,8 @@ Usage::
 
     python benchmarks/train_step.py                         # paper size on the GPU (or the CPU)
     python benchmarks/train_step.py --batch 2 --image-size 64 --encoder resnet18 --repeats 1   # smoke
+    python benchmarks/train_step.py --encoder resnet18 --image-size 96 --batch 32 --optimizer adam --level 4
+                                                            # the built-in run's step
 """
 
 from __future__ import annotations
@@ -69,6 +71,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--encoder", default="resnet50")
     p.add_argument("--image-size", type=int, default=224)
+    p.add_argument("--optimizer", default="sgd", choices=["sgd", "adam"], help="conf/optimizer/<name>.yaml")
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--eval-batch", type=int, default=16)
     p.add_argument("--level", type=int, default=5, help="evaluation grid level")
@@ -83,10 +86,11 @@ def main() -> None:
     else:
         name = cpu_model()
     print(f"device: {name}; torch {torch.__version__}")
-    print(f"I2S, {args.encoder} at {args.image_size} px, batch {args.batch}\n")
+    print(f"I2S, {args.encoder} at {args.image_size} px, batch {args.batch}, optimizer={args.optimizer}\n")
 
     with tempfile.TemporaryDirectory() as tmp:
-        overrides = ["model=i2s", "optimizer=sgd", f"encoder={args.encoder}", f"dataset.image_size={args.image_size}"]
+        overrides = ["model=i2s", f"optimizer={args.optimizer}", f"encoder={args.encoder}",
+                     f"dataset.image_size={args.image_size}"]  # fmt: skip
         cfg = compose_cfg(Path(tmp), overrides)
     optimizer = instantiate(cfg.model.optimizer)  # a partial: called with the parameters
     grid_level = int(cfg.model.train_grid_level)
@@ -95,39 +99,52 @@ def main() -> None:
     output_distribution, loss_fn = method_of(net)
     images = torch.randn(args.batch, 3, args.image_size, args.image_size, device=device)
     rotations = random_rotations(args.batch).to(device)
-    state = {k: v.detach().clone() for k, v in net.state_dict().items()}
 
-    results, updates = {}, {}
-    cases = (("float32", None, True), ("bf16 autocast", torch.bfloat16, True), ("float32 unfused", None, False))
-    for label, dtype, fused in cases:
-        net.load_state_dict(state)
-        net.train()
-        opt = optimizer(params=net.parameters(), fused=fused)
-        ctx = (lambda d=dtype: torch.autocast(device.type, dtype=d)) if dtype is not None else nullcontext
+    # the cases' steps interleaved (one step of each in turn, each case with its own optimiser state), so
+    # that a machine that speeds up or slows down during the run, and the first allocations, touch all alike
+    cases = {"float32": (None, True), "bf16 autocast": (torch.bfloat16, True), "float32 unfused": (None, False)}
+    optimizers = {label: optimizer(params=net.parameters(), fused=fused) for label, (_, fused) in cases.items()}
+    net.train()
+    step_times: dict[str, list[float]] = {label: [] for label in cases}
+    update_times: dict[str, list[float]] = {label: [] for label in cases}
 
-        def step(ctx=ctx, opt=opt):
+    def context(dtype):
+        return torch.autocast(device.type, dtype=dtype) if dtype is not None else nullcontext()
+
+    for label, (dtype, _) in cases.items():
+        with torch.no_grad(), context(dtype):  # the loss of the same weights and batch, before any step
+            first_loss = float(loss_fn(net(images), rotations, grid_level).mean())
+        print(f"loss of the first batch, {label:15s}: {first_loss:.5f}")
+    for rep in range(args.warmup + args.repeats):
+        for label, (dtype, _) in cases.items():
+            opt = optimizers[label]
+            sync(device)
+            t0 = time.perf_counter()
             opt.zero_grad(set_to_none=True)
-            with ctx():
+            with context(dtype):
                 loss = loss_fn(net(images), rotations, grid_level).mean()
             loss.backward()
+            sync(device)
+            t1 = time.perf_counter()
             opt.step()
-            return loss
-
-        with torch.no_grad(), ctx():  # the loss of the same weights and batch, before any step
-            first_loss = float(loss_fn(net(images), rotations, grid_level).mean())
-        seconds = timed(step, device, args.repeats, args.warmup)
-        results[label] = seconds
-        if dtype is None:  # the update alone, on the gradients the last step left
-            updates[fused] = timed(opt.step, device, args.repeats, args.warmup)
+            sync(device)
+            t2 = time.perf_counter()
+            if rep >= args.warmup:
+                step_times[label].append(t2 - t0)
+                update_times[label].append(t2 - t1)
+    results = {label: statistics.median(v) for label, v in step_times.items()}
+    updates = {label: statistics.median(v) for label, v in update_times.items()}
+    print()
+    for label, seconds in results.items():
         print(
-            f"training step, {label:15s}: {seconds * 1e3:8.1f} ms  ({args.batch / seconds:7.1f} images/s)"
-            f"  loss of the first batch {first_loss:.5f}"
+            f"training step, {label:15s}: {seconds * 1e3:8.1f} ms  ({args.batch / seconds:7.1f} images/s), "
+            f"the update {updates[label] * 1e3:.1f} ms"
         )
     print(f"bf16 / float32 step time: {results['bf16 autocast'] / results['float32']:.2f}x")
+    fused, unfused = "float32", "float32 unfused"
     print(
-        f"fused / unfused optimiser: {results['float32'] / results['float32 unfused']:.2f}x the training step, "
-        f"{updates[True] / updates[False]:.2f}x the update alone ({updates[True] * 1e3:.1f} ms against "
-        f"{updates[False] * 1e3:.1f} ms)\n"
+        f"fused / unfused optimiser: {results[fused] / results[unfused]:.2f}x the training step, "
+        f"{updates[fused] / updates[unfused]:.2f}x the update alone\n"
     )
 
     net.eval()

@@ -502,7 +502,7 @@ def test_invalid_max_epochs_is_refused_with_its_key(tmp_path, value):
 
 @pytest.mark.parametrize("name", ["adam", "sgd"])
 def test_each_optimizer_is_fused_and_steps_as_its_reference_implementation(tmp_path, name):
-    """Quick. Both optimisers run as one fused kernel (its update 2.3-2.7x faster on a CPU, benchmarks/train_step.py);
+    """Quick. Both optimisers run as one fused kernel (its update 2-2.6x faster on a CPU, benchmarks/train_step.py);
     the updates equal those of torch's per-tensor reference implementation (``foreach=False``) to float32
     rounding over steps with momentum state."""
     import functools

@@ -37,7 +37,8 @@ changed or removed; the only additions (never for a key the command sets itself)
   ``python benchmarks/table_cost.py`` to its end (a job line for every job, a total per table),
   ``python benchmarks/projection_noise.py`` to its end (a ratio per degree), ``python benchmarks/train_step.py``
   to its end at a small size (ResNet-18, 64 px, batch 2: the paper's size takes minutes on a CPU),
-  ``python benchmarks/batchnorm_statistics.py`` to its end with one timed repeat of each pass;
+  ``python benchmarks/batchnorm_statistics.py`` to its end with one timed repeat of each pass,
+  ``python benchmarks/flow_grid.py`` at level 2 once (both trees give the same values);
 * ``pip install`` lines are compared with what ``.ci/run`` installs; ``python -m pytest`` is not run
   inside the suite: ``.ci/run`` must end with exactly that command;
 * external tools (``SKIPPED``) are listed with the reason they are not run.
@@ -1119,6 +1120,13 @@ def test_documented_command(command: Command, fixtures_root, checkpoint_run, tmp
         assert proc.returncode == 0 and "bf16 / float32 step time:" in out, describe(argv, proc)
         assert "training step, float32" in out and "level-3 evaluation" in out, out
         assert "training step, float32 unfused" in out and "fused / unfused optimiser:" in out, out
+        return
+    if args[0] == "benchmarks/flow_grid.py":  # both trees at level 2, once: the ratios and the same values
+        small = ["--level", "2", "--eval-level", "2", "--spread-level", "2", "--repeats", "1", "--batch", "4"]
+        proc = run_in(ws, [*argv, *small], timeout=600)
+        assert proc.returncode == 0 and "flow test batch" in proc.stdout, describe(argv, proc)
+        differences = re.findall(r"largest difference of .*: (\S+)", proc.stdout)
+        assert len(differences) == 3 and all(float(d) < 1e-4 for d in differences), proc.stdout
         return
     if args[0] == "benchmarks/batchnorm_statistics.py":  # to the end, one timed repeat of each
         proc = run_in(ws, [*argv, "--repeats", "1", "--warmup", "1"], timeout=600)

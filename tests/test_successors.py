@@ -279,6 +279,54 @@ def test_set_losses_refuse_a_padded_first_rotation_and_take_it_reordered():
         assert torch.isfinite(set_loss(padded.flip(1), mask.flip(1))).all(), name
 
 
+def test_flow_without_gradients_gives_the_values_of_the_autograd_path_and_keeps_no_alias():
+    """Quick. Without autograd a coupling writes its hidden activations into buffers kept between calls
+    (the grid sweep's path); its ``w`` and ``phi`` equal the autograd path's, a later call with other
+    rotations or another shape leaves earlier results as they were, and a whole flow's density agrees."""
+    flow, z = _random_flow(0.3, seed=4, blocks=2)
+    layer = flow.layers[0]
+    axes = [haar_rotations(n, seed=seed)[..., 0].expand(3, n, 3).contiguous() for n, seed in ((7, 1), (7, 2), (4, 3))]
+    with torch.no_grad():
+        kept = [layer.parameters_at(z, a) for a in axes]  # the second call reuses the first's buffers
+    for a, (w, phi) in zip(axes, kept, strict=True):
+        w_ref, phi_ref = layer.parameters_at(z, a)  # with gradients: fresh tensors
+        torch.testing.assert_close(w, w_ref.detach(), rtol=0, atol=1e-12)
+        torch.testing.assert_close(phi, phi_ref.detach(), rtol=0, atol=1e-12)
+    assert not torch.equal(kept[0][1], kept[1][1])  # different rotations, different results, both kept
+    R = haar_rotations(9, seed=11)
+    with torch.no_grad():
+        fast = flow.log_prob(z, R)
+    torch.testing.assert_close(fast, flow.log_prob(z, R).detach(), rtol=0, atol=1e-10)
+
+
+def test_every_sweep_of_a_level_reads_the_same_chunks_so_a_test_batch_runs_the_network_once_per_point():
+    """Quick. The test's HDR sweep (groups of fibres) and the spread's full-grid log densities used to cut
+    the grid into different chunks wherever the fibre groups do not divide the chunk (level 4: 768 points
+    per group), so an implicit family ran its network over the grid twice per test batch."""
+    from image2sphere.distributions.grid_protocol import CHUNK_POINTS
+    from image2sphere.distributions.hdr_masses import HdrMassAccumulator
+    from image2sphere.distributions.implicit import ImplicitDistribution
+    from image2sphere.so3.grid import so3_grid_size
+
+    level = 4
+    n = math.prod(so3_grid_size(level))
+    assert CHUNK_POINTS % (HdrMassAccumulator.GROUP_PIXELS * so3_grid_size(level)[1]) != 0  # the hard case
+    scored = []
+
+    def score(features, rotations):
+        scored.append(rotations.shape[-3])
+        return features[:, :1] * rotations.flatten(-2)[..., 0]  # [B, K]
+
+    dist = ImplicitDistribution(torch.randn(2, 3), score, width=4)
+    targets = haar_rotations(2, dtype=torch.float32)[:, None]  # [B, 1, 3, 3]
+    with torch.no_grad():
+        summary = dist.grid_summary(level, targets)  # log normaliser, mode and HDR masses in one sweep
+        log_p = dist.log_prob_grid(level)  # what the spread reads
+    assert n <= sum(scored) <= n + 2  # every grid point scored once (and the 2 queries' nearest points)
+    torch.testing.assert_close(torch.logsumexp(log_p, dim=1), torch.zeros(2), atol=1e-5, rtol=0)
+    torch.testing.assert_close(summary.log_normalizer, torch.logsumexp(dist.grid_log_density(level), dim=1))
+
+
 def test_implicit_density_runs_the_network_once_per_query_without_gradients():
     """Repeated sweeps of one distribution without gradients (the test's log normaliser, the tempered
     distribution's, the spread) evaluate the network once per grid chunk; a query written in place, a

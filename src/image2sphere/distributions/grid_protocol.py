@@ -96,11 +96,14 @@ class GridProtocol:
     has ``batch_size``, ``dtype``, ``device``, ``unnormalized_log_density``, ``exact_mode`` and
     ``_check_query`` (:class:`~image2sphere.distributions.base.PoseDistribution`)."""
 
-    def _grid_chunks(self, level: int, multiple: int = 1):
+    def _grid_chunks(self, level: int):
         """``(start, rotations (n, 3, 3))`` chunks of the grid of ``level``, pixel-major (views of the
-        grid's rotations, built once per level, dtype and device); ``n`` is ``CHUNK_POINTS`` rounded down
-        to a multiple of ``multiple`` (at least ``multiple``), but in the last chunk."""
+        grid's rotations, built once per level, dtype and device). ``n`` is ``CHUNK_POINTS`` rounded down
+        to whole groups of fibres (what :meth:`HdrMassAccumulator.add` takes), but in the last chunk: every
+        sweep of a level sees the same chunks, so a family that keeps its values per query tensor
+        (:class:`~.implicit.ImplicitDistribution`) evaluates the grid once for all of them."""
         grid = _grid_rotations(level, self.dtype, str(self.device))  # [N, 3, 3]
+        multiple = HdrMassAccumulator.GROUP_PIXELS * so3_grid_size(level)[1]
         size = max(multiple, CHUNK_POINTS - CHUNK_POINTS % multiple)
         for start in range(0, len(grid), size):
             yield start, grid[start : start + size]
@@ -119,9 +122,7 @@ class GridProtocol:
         (:func:`~.hdr_masses.relative_exp`) of which the chunk's logsumexp is then made (without gradient)."""
         level = check_streamed_level(level)
         lse = top = arg = None
-        # a visitor gets whole groups of fibres (HdrMassAccumulator.add groups pixels at one gamma)
-        multiple = 1 if visit is None else HdrMassAccumulator.GROUP_PIXELS * so3_grid_size(level)[1]
-        for start, rotations in self._grid_chunks(level, multiple):
+        for start, rotations in self._grid_chunks(level):  # whole groups of fibres, as a visitor needs
             values = self.unnormalized_log_density(rotations)  # [B, n]
             chunk_top, chunk_arg = values.detach().max(dim=1)
             if visit is None:

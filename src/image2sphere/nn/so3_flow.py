@@ -111,17 +111,54 @@ class MobiusCoupling(nn.Module):
 
     def parameters_at(self, z: torch.Tensor, axis: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``w (B, K, 3)`` (in the plane orthogonal to ``axis``, ``|w| < W_MAX``) and ``phi (B, K)`` for
-        conditions ``z (B, F)`` and kept columns ``axis (B, K, 3)``."""
-        h = torch.relu(self.from_condition(z)[:, None, :] + self.from_column(axis))  # [B, 1, H] + [B, K, H]
-        out = self.out(self.layers(h))  # [B, K, 4]
+        conditions ``z (B, F)`` and kept columns ``axis (B, K, 3)``.
+
+        The hidden activations ``(B, K, H)`` are the costly part of a grid sweep (K rotations per image): the
+        first layer is one batched product with the image's condition term as its bias, and each activation
+        is rectified in place. Without autograd they are written into buffers kept between calls
+        (:meth:`_scratch`): a sweep calls this with the same shapes hundreds of times, and fresh
+        multi-megabyte outputs cost about as much as the products that fill them."""
+        B, K = axis.shape[:2]
+        condition = self.from_condition(z)  # [B, H]
+        weight = self.from_column.weight.T.expand(B, 3, self.hidden)  # [B, 3, H]
+        if torch.is_grad_enabled():
+            h = torch.baddbmm(condition[:, None, :], axis, weight).relu_()  # [B, K, H]
+            for layer in self.layers:  # Linear, ReLU, ... (ReLU in place: its input is not needed again)
+                h = h.relu_() if isinstance(layer, nn.ReLU) else layer(h)
+            out = self.out(h)  # [B, K, 4]
+        else:
+            h = torch.baddbmm(condition[:, None, :], axis, weight, out=self._scratch("in", B, K, axis)).relu_()
+            h = h.view(B * K, -1)  # [B K, H]
+            for index, layer in enumerate(self.layers):
+                if isinstance(layer, nn.ReLU):
+                    h.relu_()
+                else:
+                    h = torch.addmm(
+                        layer.bias, h, layer.weight.T, out=self._scratch(f"hidden{index}", B, K, axis).view(B * K, -1)
+                    )
+            out = torch.addmm(self.out.bias, h, self.out.weight.T).view(B, K, 4)  # [B, K, 4]: new, returned
         v = out[..., :3]
         v = v - (v * axis).sum(-1, keepdim=True) * axis  # in the plane of the circle
         norm = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
         w = v * (W_MAX / (1 + norm))  # |w| = W_MAX |v| / (1 + |v|) < W_MAX
         return w, out[..., 3]
 
-    def _map(self, R: torch.Tensor, z: torch.Tensor, inverse: bool) -> tuple[torch.Tensor, torch.Tensor]:
-        axis, x = R[..., :, self.i], R[..., :, self.j]  # [B, K, 3] each
+    def _scratch(self, name: str, B: int, K: int, like: torch.Tensor) -> torch.Tensor:
+        """A ``(B, K, hidden)`` buffer of ``like``'s dtype and device, kept for the next call with the same
+        shape (the buffers of one shape at a time: a sweep uses one chunk size, its last chunk another)."""
+        key = (B, K, like.dtype, like.device)
+        if getattr(self, "_scratch_key", None) != key:
+            self._scratch_key, self._scratch_buffers = key, {}
+        if name not in self._scratch_buffers:
+            self._scratch_buffers[name] = torch.empty(B, K, self.hidden, dtype=like.dtype, device=like.device)
+        return self._scratch_buffers[name]
+
+    def map_columns(
+        self, columns: tuple[torch.Tensor, torch.Tensor, torch.Tensor], z: torch.Tensor, inverse: bool = False
+    ) -> tuple[tuple[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]:
+        """The layer (or its inverse) on a rotation given by its columns ``(c_0, c_1, c_2)``, each
+        ``(B, K, 3)``: the new columns and ``log |det J| (B, K)``. Column ``i`` is passed on as it is."""
+        axis, x = columns[self.i], columns[self.j]  # [B, K, 3] each
         w, phi = self.parameters_at(z, axis)
         if inverse:
             y, log_det = mobius_circle(_turn(x, axis, -phi), -w)  # h_{-w} after turning back
@@ -129,9 +166,12 @@ class MobiusCoupling(nn.Module):
             y, log_det = mobius_circle(x, w)
             y = _turn(y, axis, phi)
         y = nn.functional.normalize(y - (y * axis).sum(-1, keepdim=True) * axis, dim=-1)  # rounding only
-        columns = [None, None, None]
-        columns[self.i], columns[self.j] = axis, y
-        columns[self.k] = torch.linalg.cross(axis, y, dim=-1)
+        out = [axis, axis, axis]
+        out[self.j], out[self.k] = y, torch.linalg.cross(axis, y, dim=-1)
+        return (out[0], out[1], out[2]), log_det
+
+    def _map(self, R: torch.Tensor, z: torch.Tensor, inverse: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        columns, log_det = self.map_columns(tuple(R.unbind(-1)), z, inverse)
         return torch.stack(columns, dim=-1), log_det  # [B, K, 3, 3], [B, K]
 
     def forward(self, R: torch.Tensor, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -165,10 +205,17 @@ class QuaternionAffine(nn.Module):
             A = -A
         W = torch.linalg.matrix_exp(A)  # [B, 4, 4]
         q = matrix_to_quaternion(R, "wxyz")  # [B, K, 4]
-        Wq = torch.einsum("bij,bkj->bki", W, q)  # [B, K, 4]
+        Wq = torch.bmm(q, W.transpose(1, 2))  # [B, K, 4]
         norm = torch.linalg.vector_norm(Wq, dim=-1)  # [B, K]
         log_det = A.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None] - 4 * norm.log()  # log det W - 4 log |W q|
         return quaternion_to_matrix(Wq, "wxyz"), log_det
+
+    def map_columns(
+        self, columns: tuple[torch.Tensor, torch.Tensor, torch.Tensor], z: torch.Tensor, inverse: bool = False
+    ) -> tuple[tuple[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]:
+        """As :meth:`MobiusCoupling.map_columns`: the layer on a rotation's columns, each ``(B, K, 3)``."""
+        R, log_det = self._map(torch.stack(columns, dim=-1), z, inverse)
+        return tuple(R.unbind(-1)), log_det
 
     def forward(self, R: torch.Tensor, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``T(R)`` and ``log |det J_T(R)|`` for ``R (B, K, 3, 3)`` and ``z (B, F)``."""
@@ -214,20 +261,22 @@ class SO3Flow(nn.Module):
         """The exact log density ``(B, K)`` (Haar measure of volume ``pi^2``) at rotations ``R`` ``(K, 3, 3)``
         (shared) or ``(B, K, 3, 3)`` for conditions ``z (B, F)``."""
         R = self._batched(R.to(z), z)
+        columns = tuple(R.unbind(-1))  # each [B, K, 3]: the couplings read and write columns
         total = torch.zeros(R.shape[:2], dtype=z.dtype, device=z.device)  # [B, K]
         for layer in reversed(self.layers):
-            R, log_det = layer.inverse(R, z)
+            columns, log_det = layer.map_columns(columns, z, inverse=True)
             total = total + log_det
         return total + LOG_UNIFORM_DENSITY
 
     def transform(self, z: torch.Tensor, R0: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``T(R0)`` ``(B, K, 3, 3)`` and ``log |det J_T(R0)|`` ``(B, K)`` (the forward direction)."""
         R = self._batched(R0.to(z), z)
+        columns = tuple(R.unbind(-1))  # each [B, K, 3]
         total = torch.zeros(R.shape[:2], dtype=z.dtype, device=z.device)
         for layer in self.layers:
-            R, log_det = layer(R, z)
+            columns, log_det = layer.map_columns(columns, z)
             total = total + log_det
-        return R, total
+        return torch.stack(columns, dim=-1), total
 
     def sample(self, z: torch.Tensor, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
         """``n`` exact draws ``(B, n, 3, 3)`` per condition: uniform rotations pushed through the flow."""

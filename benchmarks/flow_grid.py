@@ -1,0 +1,132 @@
+"""Benchmark: the grid evaluation of the SO(3) flow (``model=rotation_flow``) and of IPDF, this checkout
+against an earlier revision of the package, measured in one run.
+
+Two measurements, each in a fresh process per source tree (so both trees are imported the same way):
+
+1. **sweep**: ``grid_logsumexp_and_max(--level)`` (the log normaliser and the mode, one pass over the grid)
+   for a batch of ``--batch`` images, of the flow with its default size (``conf/model/rotation_flow.yaml``:
+   4 blocks, conditioners of 64 hidden units, a condition of 256 numbers) started at random, and of IPDF
+   (``conf/model/ipdf.yaml``);
+2. **test batch**: what the test loop computes for one batch of the flow (``PoseEstimationModule._evaluate``
+   with the recalibration pairs, the exact density and the spread), at ``--eval-level`` with the spread at
+   ``--spread-level``: the scenario of a user's ``python -m src.eval`` on a flow checkpoint.
+
+The two trees take turns, ``--repeats`` times; the medians and their ratios are printed. The earlier tree is
+``git archive <--baseline>`` of this repository's ``src/`` in a temporary directory (on ``PYTHONPATH``, which
+the editable install then yields to). The default baseline is the revision before the flow's grid evaluation
+was made faster.
+
+Usage::
+
+    python benchmarks/flow_grid.py                                   # about 3 minutes on 2 cores
+    python benchmarks/flow_grid.py --level 2 --eval-level 2 --spread-level 2 --repeats 1   # smoke
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+BASELINE = "17e4829"  # the last revision with the earlier grid evaluation
+
+# run in a child process, with the tree to measure first on sys.path
+MEASURE = r"""
+import json, sys, time
+import torch
+import image2sphere
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+from image2sphere.so3.rotations import random_rotations
+from image2sphere.training import register_resolvers
+
+level, eval_level, spread_level, batch = map(int, sys.argv[1:5])
+conf = sys.argv[5]
+register_resolvers()
+with initialize_config_dir(version_base="1.3", config_dir=conf):
+    flow_cfg = compose("train", overrides=["model=rotation_flow", "dataset.image_size=32", "model.net.start=random",
+                                            f"eval_grid_level={eval_level}", f"model.spread_grid_level={spread_level}"])
+    ipdf_cfg = compose("train", overrides=["model=ipdf", "dataset.image_size=32"])
+torch.manual_seed(0)
+module = instantiate(flow_cfg.model).eval()
+ipdf = instantiate(ipdf_cfg.model.net).eval()
+images = torch.randn(batch, 3, 32, 32)
+out = {"file": image2sphere.__file__}
+with torch.inference_mode():
+    for name, net in (("flow", module.net), ("ipdf", ipdf)):
+        dist = net.output_distribution(net(images))
+        t0 = time.perf_counter()
+        lse = dist.grid_logsumexp_and_max(level)[0]
+        out[f"{name} sweep"] = time.perf_counter() - t0
+        out[f"{name} lse"] = lse.tolist()
+    test_batch = {"image": images, "class_index": torch.zeros(batch, dtype=torch.long), "index": torch.arange(batch),
+                  "rotations": random_rotations(batch, generator=torch.Generator().manual_seed(1))[:, None],
+                  "mask": torch.ones(batch, 1, dtype=torch.bool)}
+    t0 = time.perf_counter()
+    result = module._evaluate(test_batch, eval_level, spread_level, calibration=True)
+    out["flow test batch"] = time.perf_counter() - t0
+    out["flow spread"] = result["spread"].tolist()
+print("RESULT " + json.dumps(out))
+"""
+
+
+def measure(src: Path, args) -> dict:
+    env = {**os.environ, "PYTHONPATH": str(src), "WANDB_SILENT": "true"}
+    argv = [sys.executable, "-c", MEASURE, str(args.level), str(args.eval_level), str(args.spread_level),
+            str(args.batch), str(REPO / "conf")]  # fmt: skip
+    proc = subprocess.run(argv, capture_output=True, text=True, env=env, cwd=REPO)
+    lines = [line for line in proc.stdout.splitlines() if line.startswith("RESULT ")]
+    if proc.returncode != 0 or not lines:
+        raise SystemExit(f"the measurement failed in {src}:\n{proc.stderr[-3000:]}")
+    return json.loads(lines[-1][len("RESULT ") :])
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--baseline", default=BASELINE, help="the git revision to compare with")
+    p.add_argument("--level", type=int, default=3, help="grid level of the sweep")
+    p.add_argument("--eval-level", type=int, default=4, help="the test batch's grid level (eval_grid_level)")
+    p.add_argument("--spread-level", type=int, default=4, help="the test batch's spread level")
+    p.add_argument("--batch", type=int, default=16)
+    p.add_argument("--repeats", type=int, default=2)
+    args = p.parse_args()
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from _machine import cpu_model, load_line  # benchmarks/_machine.py, beside this script
+
+    print(f"device: {cpu_model()}; {load_line('at the start')}")
+    print(f"batch {args.batch}; sweep at level {args.level}; test batch at level {args.eval_level}, spread at "
+          f"level {args.spread_level}; baseline {args.baseline}\n")  # fmt: skip
+    with tempfile.TemporaryDirectory() as tmp:
+        archive = subprocess.run(["git", "archive", args.baseline, "src"], cwd=REPO, capture_output=True)
+        if archive.returncode != 0:
+            raise SystemExit(f"git archive {args.baseline} failed in {REPO} (a git checkout with that revision is "
+                             f"needed): {archive.stderr.decode(errors='replace').strip()}")  # fmt: skip
+        subprocess.run(["tar", "-x", "-C", tmp], input=archive.stdout, check=True)
+        trees = {"baseline": Path(tmp) / "src", "this checkout": REPO / "src"}
+        runs: dict[str, list[dict]] = {name: [] for name in trees}
+        for _ in range(args.repeats):
+            for name, src in trees.items():
+                runs[name].append(measure(src, args))
+    keys = ("flow sweep", "ipdf sweep", "flow test batch")
+    median = {name: {k: statistics.median(r[k] for r in rs) for k in keys} for name, rs in runs.items()}
+    print(f"{'':18s}{'baseline':>12s}{'this checkout':>16s}{'speed-up':>10s}")
+    for k in keys:
+        a, b = median["baseline"][k], median["this checkout"][k]
+        print(f"{k:18s}{a:11.2f}s{b:15.2f}s{a / b:9.1f}x")
+    first, now = runs["baseline"][0], runs["this checkout"][0]
+    print(f"\nbaseline imported from {first['file']}, this checkout from {now['file']}")
+    # the same numbers, not only faster: the values agree to float32 rounding
+    for k in ("flow lse", "ipdf lse", "flow spread"):
+        diff = max(abs(x - y) for x, y in zip(first[k], now[k], strict=True))
+        print(f"largest difference of {k}: {diff:.2e}")
+    print(f"\n{load_line('at the end')}")
+
+
+if __name__ == "__main__":
+    main()

@@ -810,7 +810,11 @@ def check_eval(argv, proc, args: list[str], ws: Workspace) -> None:
     (run,) = _job_dirs(ws, "runs")
     metrics = yaml.safe_load((run / "metrics.json").read_text())
     given = {override_key(a): a.split("=", 1)[1] for a in args if "=" in a}
-    assert metrics["eval_grid_level"] == int(given.get("eval_grid_level", 5)), metrics
+    # not given: the level the checkpoint's run was tested at
+    from image2sphere.training.checkpoint import load_checkpoint
+
+    stored = load_checkpoint(ws.root / ws.ckpt)["run_config"]["model"]
+    assert metrics["eval_grid_level"] == int(given.get("eval_grid_level", stored["eval_grid_level"])), metrics
     assert metrics["refine"] is (given.get("refine") == "true"), metrics
     assert metrics["n_images"] > 0 and (run / "metrics.md").is_file(), info
     if given.get("dataset") == "symsol1":

@@ -40,10 +40,12 @@ def test_training_plots_fixed_validation_images_into_the_run_and_the_logger(trai
 def test_eval_scores_every_test_image_and_reproduces_the_training_metrics(trained, tmp_path):
     ckpt, run, _ = trained
     out = tmp_path / "eval"
-    # batch 4 over 6 test images: the last batch is partial and must be scored
-    proc = _run("src.eval", [f"ckpt_path={ckpt}", "eval_grid_level=3", "batch_size=4", "plots=2",
-                             f"hydra.run.dir={out}", "logger=csv"])  # fmt: skip
+    # batch 4 over 6 test images: the last batch is partial and must be scored; no eval_grid_level: the
+    # level the run was tested at (3), not the paper's 5
+    proc = _run("src.eval", [f"ckpt_path={ckpt}", "batch_size=4", "plots=2", f"hydra.run.dir={out}", "logger=csv"])
     metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["eval_grid_level"] == 3
+    assert "Evaluating on the grid of level 3 (the level its run was tested at" in proc.stdout + proc.stderr
     trained_metrics = read_metrics(run)
     assert metrics["n_images"] == trained_metrics["n_images"] == 6
     # the calibration's tie-break is drawn per image, so the same images give the same coverage in any batch

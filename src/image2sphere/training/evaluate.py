@@ -24,7 +24,7 @@ from pathlib import Path
 import lightning.pytorch as pl
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from image2sphere.reporting.metrics_table import format_metrics_markdown, format_metrics_table
 from image2sphere.training.checkpoint import AtomicCheckpointIO, CheckpointError, build_module, load_checkpoint
@@ -82,6 +82,21 @@ def _dataset_at_model_size(dataset: DictConfig, ckpt: dict, ckpt_path: str) -> D
     return dataset
 
 
+# the paper's test grid: the level of a checkpoint whose stored config names none
+PAPER_EVAL_LEVEL = 5
+
+
+def _eval_grid_level(cfg: DictConfig, ckpt: dict) -> int:
+    """``eval_grid_level`` as given, else (null) the level the checkpoint's run was tested at; logged."""
+    if cfg.get("eval_grid_level") is not None:
+        return int(cfg.eval_grid_level)
+    stored = OmegaConf.select(OmegaConf.create(ckpt.get("run_config") or {}), "model.eval_grid_level")
+    level = PAPER_EVAL_LEVEL if stored is None else int(stored)
+    source = "the paper's level" if stored is None else "the level its run was tested at"
+    log.info("Evaluating on the grid of level %d (%s; eval_grid_level=<level> sets another)", level, source)
+    return level
+
+
 def evaluate(cfg: DictConfig) -> dict[str, float]:
     """Test the checkpoint ``cfg.ckpt_path``; returns the metrics."""
     check_eval_config(cfg)
@@ -91,6 +106,8 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     if cfg.get("seed") is not None:
         pl.seed_everything(cfg.seed, workers=True)
     ckpt = load_checkpoint(cfg.ckpt_path)
+    with open_dict(cfg):
+        cfg.eval_grid_level = _eval_grid_level(cfg, ckpt)
     module = build_module(ckpt, cfg.ckpt_path, eval_grid_level=int(cfg.eval_grid_level), refine=bool(cfg.refine))
     datamodule = _datamodule(cfg, ckpt)
     if cfg.get("batch_size") is not None:

@@ -10,8 +10,9 @@ Conventions (docs/conventions.md#densities)
   over the HEALPix grid of a level, ``p_nearest * N / pi^2``.
 * The network is held as a callable ``score(features (B, F), rotations (K, 3, 3) or (B, K, 3, 3))
   -> (B, K)`` and evaluated lazily, in sub-chunks of at most :data:`MAX_ACTIVATION_ELEMENTS`
-  hidden values (``B x k x width``), so a grid chunk of the base class (``CHUNK_POINTS`` rotations)
-  never builds a ``(B, CHUNK_POINTS, width)`` activation.
+  hidden values (``B x k x width``; on a CPU :data:`CPU_ACTIVATION_ELEMENTS`, cache-sized), so a grid
+  chunk of the base class (``CHUNK_POINTS`` rotations) never builds a ``(B, CHUNK_POINTS, width)``
+  activation.
 * Evaluated without gradients, the values at a query tensor are kept (up to :data:`MAX_MEMO_ELEMENTS`
   per distribution, with the query tensor, so its memory is not reused meanwhile): the grid sweeps of one
   test batch (the log normaliser and highest-density masses, the recalibrated distribution's, which
@@ -27,13 +28,15 @@ import torch
 from image2sphere.checks import check_int
 from image2sphere.distributions.base import PoseDistribution
 
-__all__ = ["MAX_ACTIVATION_ELEMENTS", "MAX_MEMO_ELEMENTS", "ImplicitDistribution"]
+__all__ = ["CPU_ACTIVATION_ELEMENTS", "MAX_ACTIVATION_ELEMENTS", "MAX_MEMO_ELEMENTS", "ImplicitDistribution"]
 
-# hidden values (B x k x width) per call of the scoring network: 4 MiB of float32 per activation, so that
-# each layer's output is still in cache when the next reads it. A level-3 sweep of 16 images on this
-# project's 2-core CPU: IPDF 0.91 s at 1 << 20 against 2.14 s at 1 << 24 (1.02 s at 1 << 19), the flow
-# 2.1 s against 3.7 s (2.7 s at 1 << 18); benchmarks/flow_grid.py
-MAX_ACTIVATION_ELEMENTS = 1 << 20
+# hidden values (B x k x width) per call of the scoring network: 64 MiB of float32 per activation at most
+MAX_ACTIVATION_ELEMENTS = 1 << 24
+# on a CPU, 4 MiB, so that each layer's output is still in cache when the next reads it. A level-3 sweep of
+# 16 images on this project's 2-core CPU: IPDF 0.91 s at 1 << 20 against 2.14 s at 1 << 24 (1.02 s at
+# 1 << 19), the flow 2.1 s against 3.7 s (2.7 s at 1 << 18); benchmarks/flow_grid.py. A GPU keeps the
+# larger calls: each call is a launch of every layer's kernels.
+CPU_ACTIVATION_ELEMENTS = 1 << 20
 # log densities kept per distribution for repeated queries without gradients (256 MiB of float32)
 MAX_MEMO_ELEMENTS = 1 << 26
 
@@ -62,7 +65,8 @@ class ImplicitDistribution(PoseDistribution):
             unnormalised log density (e.g. :meth:`image2sphere.nn.IPDF.score`). Differentiable
             w.r.t. the features and the network's parameters.
         width: the widest hidden layer of ``score``: sets the rotations per call,
-            ``max(1, MAX_ACTIVATION_ELEMENTS // (B * width))``.
+            ``max(1, budget // (B * width))``, the budget :data:`MAX_ACTIVATION_ELEMENTS` (on a CPU at
+            most :data:`CPU_ACTIVATION_ELEMENTS`).
     """
 
     def __init__(self, features: torch.Tensor, score: ScoreFn, width: int = 256):
@@ -76,7 +80,10 @@ class ImplicitDistribution(PoseDistribution):
         self.score = score
         self.width = width
         self.batch_size, self.dtype, self.device = features.shape[0], features.dtype, features.device
-        self.points_per_call = max(1, MAX_ACTIVATION_ELEMENTS // (self.batch_size * width))
+        budget = MAX_ACTIVATION_ELEMENTS
+        if self.device.type == "cpu":
+            budget = min(budget, CPU_ACTIVATION_ELEMENTS)
+        self.points_per_call = max(1, budget // (self.batch_size * width))
         self._memo: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
         self._memo_elements = 0
 

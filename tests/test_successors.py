@@ -299,6 +299,33 @@ def test_flow_without_gradients_gives_the_values_of_the_autograd_path_and_keeps_
     torch.testing.assert_close(fast, flow.log_prob(z, R).detach(), rtol=0, atol=1e-10)
 
 
+def test_flow_evaluated_by_two_threads_at_once_gives_each_its_own_values():
+    """Quick. The buffers of the no-autograd path are per thread: two threads evaluating one model at once
+    (a server's request handlers) get the values each would get alone."""
+    import threading
+
+    flow, z = _random_flow(0.3, seed=5, blocks=2)
+    inputs = [haar_rotations(2000, seed=seed) for seed in (21, 22)]
+    with torch.no_grad():
+        alone = [flow.log_prob(z, R) for R in inputs]
+    results: dict[int, list[torch.Tensor]] = {0: [], 1: []}
+
+    def work(i: int) -> None:
+        with torch.no_grad():
+            for _ in range(15):
+                results[i].append(flow.log_prob(z, inputs[i]))
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in (0, 1)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for i in (0, 1):
+        assert len(results[i]) == 15
+        for value in results[i]:
+            torch.testing.assert_close(value, alone[i], rtol=0, atol=0)
+
+
 def test_every_sweep_of_a_level_reads_the_same_chunks_so_a_test_batch_runs_the_network_once_per_point():
     """Quick. The test's HDR sweep (groups of fibres) and the spread's full-grid log densities used to cut
     the grid into different chunks wherever the fibre groups do not divide the chunk (level 4: 768 points

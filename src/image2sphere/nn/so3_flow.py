@@ -44,6 +44,8 @@ transformations is as expressive in the limit and keeps sampling and density exa
 
 from __future__ import annotations
 
+import threading
+
 import torch
 from torch import nn
 
@@ -145,13 +147,18 @@ class MobiusCoupling(nn.Module):
 
     def _scratch(self, name: str, B: int, K: int, like: torch.Tensor) -> torch.Tensor:
         """A ``(B, K, hidden)`` buffer of ``like``'s dtype and device, kept for the next call with the same
-        shape (the buffers of one shape at a time: a sweep uses one chunk size, its last chunk another)."""
+        shape in the same thread (per thread: two threads evaluating one model at once, as a server's
+        request handlers may, never share one; the buffers of one shape at a time per thread: a sweep uses
+        one chunk size, its last chunk another)."""
         key = (B, K, like.dtype, like.device)
-        if getattr(self, "_scratch_key", None) != key:
-            self._scratch_key, self._scratch_buffers = key, {}
-        if name not in self._scratch_buffers:
-            self._scratch_buffers[name] = torch.empty(B, K, self.hidden, dtype=like.dtype, device=like.device)
-        return self._scratch_buffers[name]
+        per_thread = self.__dict__.setdefault("_scratch_by_thread", {})
+        shape, buffers = per_thread.get(threading.get_ident(), (None, None))
+        if shape != key:
+            buffers = {}
+            per_thread[threading.get_ident()] = (key, buffers)
+        if name not in buffers:
+            buffers[name] = torch.empty(B, K, self.hidden, dtype=like.dtype, device=like.device)
+        return buffers[name]
 
     def map_columns(
         self, columns: tuple[torch.Tensor, torch.Tensor, torch.Tensor], z: torch.Tensor, inverse: bool = False

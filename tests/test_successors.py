@@ -297,6 +297,17 @@ def test_flow_without_gradients_gives_the_values_of_the_autograd_path_and_keeps_
     with torch.no_grad():
         fast = flow.log_prob(z, R)
     torch.testing.assert_close(fast, flow.log_prob(z, R).detach(), rtol=0, atol=1e-10)
+    # a shape first seen in the test loop's inference mode, then a prediction under no_grad, then again
+    R = haar_rotations(10, seed=12)
+    reference = flow.log_prob(z, R).detach()
+    with torch.inference_mode():
+        tested = flow.log_prob(z, R)
+    with torch.no_grad():
+        predicted = flow.log_prob(z, R)
+    with torch.inference_mode():
+        again = flow.log_prob(z, R)
+    for value in (tested, predicted, again):
+        torch.testing.assert_close(value, reference, rtol=0, atol=1e-10)
 
 
 def test_flow_evaluated_by_two_threads_at_once_gives_each_its_own_values():

@@ -149,8 +149,10 @@ class MobiusCoupling(nn.Module):
         """A ``(B, K, hidden)`` buffer of ``like``'s dtype and device, kept for the next call with the same
         shape in the same thread (per thread: two threads evaluating one model at once, as a server's
         request handlers may, never share one; the buffers of one shape at a time per thread: a sweep uses
-        one chunk size, its last chunk another)."""
-        key = (B, K, like.dtype, like.device)
+        one chunk size, its last chunk another). A buffer made under ``torch.inference_mode`` (Lightning's test
+        loop) cannot be written outside it (``torch.no_grad``, a prediction afterwards), so the mode is part of
+        the key."""
+        key = (B, K, like.dtype, like.device, torch.is_inference_mode_enabled())
         per_thread = self.__dict__.setdefault("_scratch_by_thread", {})
         shape, buffers = per_thread.get(threading.get_ident(), (None, None))
         if shape != key:

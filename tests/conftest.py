@@ -196,13 +196,17 @@ def published_fixtures(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def tiny_run(tmp_path_factory) -> Path:
     """The run directory of one epoch of the tiny default run (``checkpoints/last.ckpt``, ``metrics.json``,
-    the plots of 2 validation images and TensorBoard events). Shared by the whole session: read only."""
+    the plots of 2 validation images and TensorBoard events); what it printed is in ``stdout.txt`` and
+    ``stderr.txt`` of the directory above. Shared by the whole session: read only."""
     root = tmp_path_factory.mktemp("tiny_run")
     run = root / "run"
     plots = ["callbacks.so3_plot.every_n_epochs=1", "callbacks.so3_plot.n_images=2", "callbacks.so3_plot.level=2"]
-    run_train(["trainer.max_epochs=1", "logger=tensorboard", *plots, f"hydra.run.dir={run}"], root / "data",
-              root / "logs")  # fmt: skip
+    proc = run_train(["trainer.max_epochs=1", "logger=tensorboard", *plots, f"hydra.run.dir={run}"], root / "data",
+                     root / "logs")  # fmt: skip
     assert (run / "checkpoints" / "last.ckpt").is_file() and (run / "metrics.json").is_file()
+    # what the run printed, beside (not in) its directory: tests of the terminal read it
+    (root / "stdout.txt").write_text(proc.stdout)
+    (root / "stderr.txt").write_text(proc.stderr)
     return run
 
 

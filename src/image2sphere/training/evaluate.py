@@ -39,6 +39,7 @@ from image2sphere.training.stop import (
     handle_signals,
     use_flag_only_signals,
 )
+from image2sphere.training.terminal import quiet_known_noise, report
 
 __all__ = ["evaluate", "recalibrated_path"]
 
@@ -99,6 +100,7 @@ def _eval_grid_level(cfg: DictConfig, ckpt: dict) -> int:
 
 def evaluate(cfg: DictConfig) -> dict[str, float]:
     """Test the checkpoint ``cfg.ckpt_path``; returns the metrics."""
+    quiet_known_noise()
     check_eval_config(cfg)
     output_dir = Path(cfg.paths.output_dir)
     if (output_dir / "metrics.json").exists():
@@ -143,7 +145,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     # in a multirun job, the other DDP ranks start as this job
     with ddp_children_run_this_job(), handle_signals(grace=cfg.get("stop_grace_s", DEFAULT_GRACE_S)):
         try:
-            trainer.test(model=module, datamodule=datamodule)
+            trainer.test(model=module, datamodule=datamodule, verbose=False)  # the project's table is printed below
             close_decisions()  # every rank: no decision is left in flight when the process ends
         except StopRequested as e:
             finish_loggers(loggers)
@@ -167,9 +169,10 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
             _plot_reliability(metrics, module.class_names, title, output_dir / "reliability.png", loggers)
         if cfg.plots:
             _plot_test_images(module, datamodule, int(cfg.plots), int(cfg.eval_grid_level), output_dir / "plots")
-        print(f"\nTest metrics ({cfg.ckpt_path}, eval grid level {cfg.eval_grid_level}, refine={bool(cfg.refine)}):")
-        print(format_metrics_table(metrics, module.class_names))
-        print(f"Run directory: {output_dir}\n")
+        report(
+            f"\nTest metrics ({cfg.ckpt_path}, eval grid level {cfg.eval_grid_level}, refine={bool(cfg.refine)}):\n"
+            f"{format_metrics_table(metrics, module.class_names)}\nRun directory: {output_dir}\n"
+        )
     finish_loggers(loggers)
     return metrics
 

@@ -44,6 +44,7 @@ from image2sphere.training.stop import (
     requeue_signals,
     use_flag_only_signals,
 )
+from image2sphere.training.terminal import quiet_known_noise, report
 
 __all__ = ["finish_loggers", "fit_recalibration_on", "instantiate_list", "train"]
 
@@ -71,6 +72,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     Ctrl-C, SIGTERM and SLURM's requeue signal only record a request while it runs; the ranks decide
     together where to stop (:mod:`image2sphere.training.stop`).
     """
+    quiet_known_noise()
     with ddp_children_run_this_job(), handle_signals(requeue_signals(), cfg.get("stop_grace_s", DEFAULT_GRACE_S)):
         metrics = _train(cfg)
         close_decisions()  # every rank, at its run's end: no decision is left in flight when the process ends
@@ -179,7 +181,8 @@ def _fit_and_test(cfg, trainer, model, datamodule, loggers, output_dir, ckpt_pat
         if not cfg.train and ckpt_path is None:
             log.warning("Testing a model that was neither trained nor loaded (train=false, ckpt_path=null)")
         start = time.perf_counter()
-        trainer.test(model=model, datamodule=datamodule, ckpt_path=ckpt_path if not cfg.train else None)
+        # verbose=False: the project's table below, not Lightning's table of every logged value
+        trainer.test(model=model, datamodule=datamodule, ckpt_path=ckpt_path if not cfg.train else None, verbose=False)
         timings["test_seconds"] = time.perf_counter() - start
         metrics = dict(model.test_metrics)
         if trainer.is_global_zero and metrics:
@@ -187,9 +190,10 @@ def _fit_and_test(cfg, trainer, model, datamodule, loggers, output_dir, ckpt_pat
             with open(output_dir / "metrics.json", "x") as f:  # "x": never overwrite
                 json.dump({**metrics, **timings}, f, indent=2, sort_keys=True)
             names = model.class_names or []
-            print(f"\nTest metrics ({cfg.get('task_name')}, eval grid level {model.hparams.eval_grid_level}):")
-            print(format_metrics_table(metrics, names))
-            print(f"Run directory: {output_dir}\n")
+            report(
+                f"\nTest metrics ({cfg.get('task_name')}, eval grid level {model.hparams.eval_grid_level}):\n"
+                f"{format_metrics_table(metrics, names)}\nRun directory: {output_dir}\n"
+            )
     finish_loggers(loggers)
     return {**metrics, **timings}
 

@@ -167,6 +167,21 @@ def test_start_up_log_says_where_each_protocol_setting_came_from(tmp_path):
     assert "[" not in resumed and "ResNet-34" in resumed
 
 
+@pytest.mark.parametrize("model", ["i2s", "rotation_flow", "ipdf", "wigner_regression"])
+def test_start_up_log_names_a_band_limit_only_for_a_method_that_has_one(tmp_path, model):
+    """I2S and the Wigner-D regression read lmax; the flow and IPDF have no band limit (they said "lmax 6"),
+    also when the config is a checkpoint's resolved one (a resumed run)."""
+    from image2sphere.training.run_config import describe_run
+
+    cfg = compose_cfg(tmp_path, [f"model={model}"])
+    (line,) = [line for line in describe_run(cfg).splitlines() if line.split()[0] == "model"]
+    resolved = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+    (resumed,) = [line for line in describe_run(resolved).splitlines() if line.split()[0] == "model"]
+    has = model in ("i2s", "wigner_regression")
+    assert ("lmax 6, grid levels 3" in line) == has and ("lmax" in resumed) == has
+    assert line.endswith("grid levels 3 (training) and 5 (test)")
+
+
 def test_docs_resolution_table_is_what_the_configs_compose(tmp_path):
     """docs/configuration.md's table of `dataset=X` alone, row by row, against the composed configs."""
     text = (CONF.parent / "docs" / "configuration.md").read_text()

@@ -4,6 +4,7 @@ on a tiny checkpoint trained inside the test."""
 from __future__ import annotations
 
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -113,9 +114,10 @@ def test_predict_prints_modes_and_writes_the_plot_next_to_the_image(trained, tmp
                                 f"hydra.run.dir={tmp_path / 'run2'}"])  # fmt: skip
     assert "mode 1: mass" in proc.stdout and f"plot: {tmp_path / 'cube_so3-1.png'} ({plot} exists" in proc.stdout
     assert plot.read_bytes() == first and (tmp_path / "cube_so3-1.png").read_bytes()[:4] == b"\x89PNG"
-    _run("src.predict", [f"ckpt_path={ckpt}", f"image={image}", "eval_grid_level=3", f"output={tmp_path / 'other.png'}",
-                         f"hydra.run.dir={tmp_path / 'run3'}"])  # fmt: skip
+    proc = _run("src.predict", [f"ckpt_path={ckpt}", f"image={image}", "eval_grid_level=3", "top_k=1",
+                                f"output={tmp_path / 'other.png'}", f"hydra.run.dir={tmp_path / 'run3'}"])  # fmt: skip
     assert (tmp_path / "other.png").is_file()
+    assert re.search(rf"^{re.escape(str(image))}: 1 mode \(level 3, .* of the probability in it$", proc.stdout, re.M)
 
 
 def test_predictor_on_a_batch_matches_the_trained_module(trained):

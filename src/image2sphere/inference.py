@@ -205,8 +205,9 @@ def predict(
     dist = predictor(image_path, class_index)
     rotations, mass = dist.modes(level, k=top_k, radius_deg=radius_deg, threshold=threshold)[0]
     if len(mass):
-        print(f"{image_path}: {len(mass)} modes (level {level}, radius {radius_deg:g} deg), "
-              f"{float(mass.sum()):.3f} of the probability in them")  # fmt: skip
+        modes, them = ("1 mode", "it") if len(mass) == 1 else (f"{len(mass)} modes", "them")
+        print(f"{image_path}: {modes} (level {level}, radius {radius_deg:g} deg), "
+              f"{float(mass.sum()):.3f} of the probability in {them}")  # fmt: skip
         print(format_modes(rotations.cpu(), mass.cpu()))
     else:
         top = float(dist.max_prob(level)[0])

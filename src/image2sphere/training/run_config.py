@@ -343,6 +343,25 @@ def protocol_settings(cfg: DictConfig) -> dict[str, str]:
     }
 
 
+def uses_band_limit(cfg: DictConfig) -> bool:
+    """Whether the run's method has a band limit: a key ``lmax`` anywhere in its model config (I2S and its
+    variants, the Wigner-D regression, the Fourier MLP take the top-level ``lmax``; a flow, IPDF or a
+    regressor has none). Also right for a resumed run, whose config is the checkpoint's, resolved.
+    ``True`` when the config has no model section (nothing to tell)."""
+    model = cfg.get("model")
+    if not isinstance(model, DictConfig):
+        return True
+
+    def has_lmax(node) -> bool:
+        if isinstance(node, dict):
+            return "lmax" in node or any(has_lmax(v) for v in node.values())
+        if isinstance(node, list):
+            return any(has_lmax(v) for v in node)
+        return False
+
+    return has_lmax(OmegaConf.to_container(model, resolve=False))
+
+
 def describe_run(
     cfg: DictConfig,
     choices: dict[str, str] | None = None,
@@ -374,10 +393,11 @@ def describe_run(
         return f"{choices[group]}: " if group in choices else ""
 
     data, net = cfg.get("dataset") or {}, OmegaConf.select(cfg, "model.net") or {}
+    band_limit = f"lmax {cfg.get('lmax')}, " if uses_band_limit(cfg) else ""  # a flow or IPDF has none
     lines = [
         f"  data       {choice('dataset')}{_name(data)} from {data.get('root') or data.get('render_dir')}, "
         f"{data.get('image_size')} px, batch {data.get('batch_size')}",
-        f"  model      {choice('model')}{_name(net)}, lmax {cfg.get('lmax')}, "
+        f"  model      {choice('model')}{_name(net)}, {band_limit}"
         f"grid levels {cfg.get('train_grid_level')} (training) and {cfg.get('eval_grid_level')} (test)",
     ] + [f"  {what:<10} {choice(what)}{settings[what]}{source(what)}" for what in PROTOCOL_KEYS]
     if "protocol" in choices:

@@ -30,7 +30,7 @@ __all__ = ["WandbLogger", "quiet_known_noise", "report"]
 # the loggers Lightning's rank_zero_info writes to (the fabric and the pytorch copies of the helper)
 _RANK_ZERO_LOGGERS = ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero")
 _LITLOGGER_TIP = "💡 Tip: For seamless cloud logging"
-_LEAFSPEC_WARNING = r"`isinstance\(treespec, LeafSpec\)` is deprecated"
+_LEAF_DEPRECATION = r"`isinstance\(treespec, LeafSpec\)` is deprecated"
 
 
 class _DropLitLoggerTip(logging.Filter):
@@ -52,7 +52,7 @@ def quiet_known_noise() -> None:
         if _TIP_FILTER not in logger.filters:
             logger.addFilter(_TIP_FILTER)
     warnings.filterwarnings(
-        "ignore", message=_LEAFSPEC_WARNING, category=FutureWarning, module=r"lightning\.pytorch\.utilities\._pytree"
+        "ignore", message=_LEAF_DEPRECATION, category=FutureWarning, module=r"lightning\.pytorch\.utilities\._pytree"
     )
 
 

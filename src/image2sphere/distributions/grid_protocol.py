@@ -31,6 +31,7 @@ from typing import NamedTuple
 
 import torch
 
+from image2sphere.batch_progress import report as report_progress
 from image2sphere.checks import check_int
 from image2sphere.distributions.hdr_masses import HdrMassAccumulator, finite_or_zero, relative_exp
 from image2sphere.precision import constant_cache, float32_methods
@@ -105,7 +106,9 @@ class GridProtocol:
         grid = _grid_rotations(level, self.dtype, str(self.device))  # [N, 3, 3]
         multiple = HdrMassAccumulator.GROUP_PIXELS * so3_grid_size(level)[1]
         size = max(multiple, CHUNK_POINTS - CHUNK_POINTS % multiple)
+        chunks = -(-len(grid) // size)
         for start in range(0, len(grid), size):
+            report_progress(start // size, chunks, f"grid {level}", "chunks")  # a long test batch moves
             yield start, grid[start : start + size]
 
     # ------------------------------------------------------------------ sweeps and values

@@ -40,6 +40,7 @@ from collections.abc import Callable
 
 import torch
 
+from image2sphere.batch_progress import report as report_progress
 from image2sphere.precision import constant_cache
 from image2sphere.so3.grid import (
     MAX_DENSE_LEVEL,
@@ -227,7 +228,9 @@ class HealpixGridEvaluator:
             pix_max, pix_lse = coeffs.new_empty(B, self.n_pix), coeffs.new_empty(B, self.n_pix)
         else:
             maxes, lses = [], []
+        chunks = -(-self.n_pix // step)
         for p0 in range(0, self.n_pix, step):
+            report_progress(p0 // step, chunks, f"grid {self.level}", "chunks")  # a long test batch moves
             p1 = min(self.n_pix, p0 + step)
             if reuse:
                 x = buffer[: B * (p1 - p0) * G].view(B, p1 - p0, G)

@@ -66,6 +66,7 @@ from image2sphere.so3.grid import (
     so3_healpix_index_to_matrix,
 )
 from image2sphere.training.run_config import deprecated_name
+from image2sphere.training.test_cost import announce_test_cost
 
 __all__ = ["NonFiniteLossError", "PoseEstimationModule"]
 
@@ -369,6 +370,18 @@ class PoseEstimationModule(pl.LightningModule):
         if self._count_skipped(batch, "test"):
             level, spread_level = self.hparams.eval_grid_level, self.hparams.spread_grid_level
             self._record(self._evaluate(batch, level, spread_level, calibration=True))
+
+    def on_test_start(self) -> None:
+        trainer = self._trainer
+        if trainer is None or not trainer.is_global_zero:
+            return
+        batches = sum(trainer.num_test_batches)
+        loader = trainer.test_dataloaders
+        loader = loader[0] if isinstance(loader, (list, tuple)) else loader
+        batch_size = getattr(loader, "batch_size", None)
+        if batch_size and math.isfinite(batches):  # this process's share: what it will have to score
+            level, spread_level = self.hparams.eval_grid_level, self.hparams.spread_grid_level
+            announce_test_cost(self, int(batches) * batch_size, level, spread_level, "eval_grid_level")
 
     def on_test_epoch_start(self) -> None:
         self.skipped_images.pop("test", None)

@@ -33,6 +33,8 @@ import lightning.pytorch as pl
 from lightning.pytorch.callbacks import TQDMProgressBar
 from lightning.pytorch.callbacks.progress.tqdm_progress import Tqdm, convert_inf
 
+from image2sphere.batch_progress import set_reporter
+
 __all__ = ["EpochProgressBar", "batch_progress"]
 
 # The bar of the evaluation batch in progress on this process, set by its on_*_batch_start and cleared at
@@ -155,6 +157,7 @@ class EpochProgressBar(TQDMProgressBar):
             return
         self._batch_bar, self._batch_shown_t, self._batch_note = bar, time.monotonic(), ""
         _active = self
+        set_reporter(batch_progress)  # the grid sweeps report through image2sphere.batch_progress
 
     def _end_batch(self) -> None:
         """Forget the batch's bar; a note :meth:`batch_progress` drew is wiped, so that it never stands
@@ -163,6 +166,7 @@ class EpochProgressBar(TQDMProgressBar):
         bar, self._batch_bar = self._batch_bar, None
         if _active is self:
             _active = None
+            set_reporter(None)
         if bar is not None and self._batch_note:
             self._batch_note = ""
             bar.set_postfix_str("", refresh=True)

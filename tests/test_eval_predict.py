@@ -46,6 +46,7 @@ def test_eval_scores_every_test_image_and_reproduces_the_training_metrics(traine
     proc = _run("src.eval", [f"ckpt_path={ckpt}", "batch_size=4", "plots=2", f"hydra.run.dir={out}", "logger=csv"])
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["eval_grid_level"] == 3
+    assert "unfinished" not in metrics and "UNFINISHED" not in proc.stdout  # the run trained its 1 epoch
     assert "Evaluating on the grid of level 3 (the level its run was tested at" in proc.stdout + proc.stderr
     trained_metrics = read_metrics(run)
     assert metrics["n_images"] == trained_metrics["n_images"] == 6
@@ -195,3 +196,43 @@ def test_sigterm_in_the_eval_test_stops_after_that_batch_and_writes_nothing(trai
     assert proc.returncode == 128 + signal.SIGTERM, proc.stderr[-3000:]
     assert "Stopped by SIGTERM in the test; nothing was written" in proc.stdout + proc.stderr
     assert not (out / "metrics.json").exists()
+
+
+def _with(ckpt: dict, trainer: dict, epochs_done: int, batches: int, step: int) -> dict:
+    """``ckpt`` with another trainer config and loop progress (as Lightning stores them)."""
+    out = {**ckpt, "run_config": {**ckpt["run_config"], "trainer": {**ckpt["run_config"]["trainer"], **trainer}}}
+    progress = {"current": {"processed": batches, "completed": batches}}
+    out["loops"] = {"fit_loop": {"epoch_progress": {"current": {"processed": epochs_done}},
+                                 "epoch_loop.batch_progress": {**progress, "is_last_batch": batches == 0}}}  # fmt: skip
+    out["global_step"] = step
+    return out
+
+
+def test_an_unfinished_or_smoke_runs_checkpoint_is_named_as_such(trained):
+    from image2sphere.training.evaluate import unfinished_training
+
+    ckpt = torch.load(trained[0], map_location="cpu", weights_only=True)
+    assert unfinished_training(ckpt) is None  # the tiny run: 1 epoch of max_epochs=1
+    assert unfinished_training(_with(ckpt, {"max_epochs": 5}, 0, 13, 13)) == (
+        "stopped in epoch 0 after 13 batches (global step 13) of a run set to train 5 epochs"
+    )
+    assert unfinished_training(_with(ckpt, {"max_epochs": 5}, 2, 0, 60)) == (
+        "stopped in epoch 2 at its start (global step 60) of a run set to train 5 epochs"
+    )
+    assert unfinished_training(_with(ckpt, {"max_epochs": 5, "max_steps": 60}, 2, 0, 60)) is None  # max_steps
+    assert unfinished_training(_with(ckpt, {"max_epochs": -1}, 2, 0, 60)) is None  # no end was set
+    assert unfinished_training(_with(ckpt, {"fast_dev_run": True}, 1, 0, 1)).startswith("a fast_dev_run smoke run")
+
+
+@pytest.mark.slow
+def test_eval_of_an_unfinished_checkpoint_says_so_in_its_log_title_and_metrics(trained, tmp_path):
+    ckpt = torch.load(trained[0], map_location="cpu", weights_only=True)
+    stopped = tmp_path / "stopped.ckpt"
+    torch.save(_with(ckpt, {"max_epochs": 5}, 0, 13, 13), stopped)
+    out = tmp_path / "eval"
+    proc = _run("src.eval", [f"ckpt_path={stopped}", f"hydra.run.dir={out}", "logger=none"])
+    reason = "stopped in epoch 0 after 13 batches (global step 13) of a run set to train 5 epochs"
+    assert f"{stopped} is from an unfinished training: {reason}" in proc.stdout
+    assert f"Test metrics ({stopped}, eval grid level 3, refine=False; UNFINISHED training: {reason}):" in proc.stdout
+    assert json.loads((out / "metrics.json").read_text())["unfinished"] == reason
+    assert f"UNFINISHED training: {reason}" in (out / "metrics.md").read_text()

@@ -27,7 +27,14 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from image2sphere.reporting.metrics_table import format_metrics_markdown, format_metrics_table
-from image2sphere.training.checkpoint import AtomicCheckpointIO, CheckpointError, build_module, load_checkpoint
+from image2sphere.training.checkpoint import (
+    AtomicCheckpointIO,
+    CheckpointError,
+    batches_done_in_epoch,
+    build_module,
+    epoch_resumed_in,
+    load_checkpoint,
+)
 from image2sphere.training.cluster import ddp_children_run_this_job
 from image2sphere.training.pipeline import finish_loggers, fit_recalibration_on, instantiate_list
 from image2sphere.training.run_config import check_eval_config, command_line, override_key
@@ -83,6 +90,27 @@ def _dataset_at_model_size(dataset: DictConfig, ckpt: dict, ckpt_path: str) -> D
     return dataset
 
 
+def unfinished_training(ckpt: dict) -> str | None:
+    """How far short of its configured end the checkpoint's training stopped (``None``: it got there, or the
+    checkpoint does not say): a ``fast_dev_run`` smoke run, or fewer epochs (and steps) than the run's
+    ``trainer.max_epochs`` (``trainer.max_steps`` where that was reached first), e.g. ``"stopped in epoch
+    0 after 13 batches (global step 13) of a run set to train 5 epochs"``."""
+    trainer = (ckpt.get("run_config") or {}).get("trainer") or {}
+    if trainer.get("fast_dev_run"):
+        return "a fast_dev_run smoke run (one batch of each loop)"
+    max_epochs, max_steps = trainer.get("max_epochs"), trainer.get("max_steps")
+    step = int(ckpt.get("global_step", 0) or 0)
+    if isinstance(max_steps, int) and max_steps > 0 and step >= max_steps:
+        return None
+    if not isinstance(max_epochs, int) or max_epochs < 0:  # no end set (-1, None): nothing to fall short of
+        return None
+    epochs, batches = epoch_resumed_in(ckpt), batches_done_in_epoch(ckpt)
+    if epochs >= max_epochs:
+        return None
+    where = f"after {batches} batches" if batches else "at its start"
+    return f"stopped in epoch {epochs} {where} (global step {step}) of a run set to train {max_epochs} epochs"
+
+
 # the paper's test grid: the level of a checkpoint whose stored config names none
 PAPER_EVAL_LEVEL = 5
 
@@ -108,6 +136,9 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     if cfg.get("seed") is not None:
         pl.seed_everything(cfg.seed, workers=True)
     ckpt = load_checkpoint(cfg.ckpt_path)
+    unfinished = unfinished_training(ckpt)
+    if unfinished is not None:  # said here, in the table's title and in metrics.json
+        log.warning("%s is from an unfinished training: %s", cfg.ckpt_path, unfinished)
     with open_dict(cfg):
         cfg.eval_grid_level = _eval_grid_level(cfg, ckpt)
     module = build_module(ckpt, cfg.ckpt_path, eval_grid_level=int(cfg.eval_grid_level), refine=bool(cfg.refine))
@@ -156,12 +187,14 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     if trainer.is_global_zero:
         output_dir.mkdir(parents=True, exist_ok=True)
         with open(output_dir / "metrics.json", "x") as f:
-            json.dump({**metrics, "ckpt_path": str(cfg.ckpt_path), "eval_grid_level": int(cfg.eval_grid_level),
-                       "refine": bool(cfg.refine)}, f, indent=2, sort_keys=True)  # fmt: skip
+            about = {"ckpt_path": str(cfg.ckpt_path), "eval_grid_level": int(cfg.eval_grid_level),
+                     "refine": bool(cfg.refine)} | ({"unfinished": unfinished} if unfinished else {})  # fmt: skip
+            json.dump({**metrics, **about}, f, indent=2, sort_keys=True)
         table = format_metrics_markdown(metrics, module.class_names)
-        title = (
-            f"# {cfg.ckpt_path}\n\nTest metrics, eval grid level {cfg.eval_grid_level}, refine={bool(cfg.refine)}\n\n"
+        settings = f"eval grid level {cfg.eval_grid_level}, refine={bool(cfg.refine)}" + (
+            f"; UNFINISHED training: {unfinished}" if unfinished else ""
         )
+        title = f"# {cfg.ckpt_path}\n\nTest metrics, {settings}\n\n"
         with open(output_dir / "metrics.md", "x") as f:
             f.write(title + table)
         if "calibration_ece" in metrics:  # a density method
@@ -170,7 +203,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
         if cfg.plots:
             _plot_test_images(module, datamodule, int(cfg.plots), int(cfg.eval_grid_level), output_dir / "plots")
         report(
-            f"\nTest metrics ({cfg.ckpt_path}, eval grid level {cfg.eval_grid_level}, refine={bool(cfg.refine)}):\n"
+            f"\nTest metrics ({cfg.ckpt_path}, {settings}):\n"
             f"{format_metrics_table(metrics, module.class_names)}\nRun directory: {output_dir}\n"
         )
     finish_loggers(loggers)

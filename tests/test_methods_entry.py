@@ -9,6 +9,7 @@ through every entry point. All models of a sweep run in one Hydra multirun (one 
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import os
@@ -96,8 +97,11 @@ def printed_tables(stdout: str) -> dict[str, list[list[str]]]:
 
 
 def markdown_table(text: str) -> dict[str, list[str]]:
-    """A markdown table's columns: title -> cells (the class column under "class")."""
-    lines = [line for line in text.splitlines() if line.startswith("|") and not line.startswith("|---")]
+    """The columns of the first markdown table in ``text``: title -> cells (the class column under "class")."""
+    block = itertools.takewhile(
+        lambda line: line.startswith("|"), itertools.dropwhile(lambda line: not line.startswith("|"), text.splitlines())
+    )
+    lines = [line for line in block if not line.startswith("|---")]  # the first table: the metrics
     header, *rows = [[cell.strip() for cell in line.strip("|").split("|")] for line in lines]
     return {title: [row[i] for row in rows] for i, title in enumerate(header)}
 
@@ -138,12 +142,13 @@ def check_metrics(model: str, metrics: dict) -> None:
 def check_printed_table(model: str, table: list[list[str]], metrics: dict) -> None:
     """Every column is printed; a regressor's log likelihood, spread and ECE read n/a in every row; a run
     with a recalibration (``temperature`` in its metrics: a density method with a validation split) also
-    has the log likelihood and ECE after it."""
+    has the log likelihood and ECE after it, and a family with a closed-form density its exact log likelihood."""
     density, _ = FAMILIES[model]
     header, *rows = table
     recalibrated = "temperature" in metrics
     assert not recalibrated or density, model  # a point regressor has nothing to recalibrate
-    assert header == TABLE_HEADER + (RECALIBRATED_HEADER if recalibrated else []), (model, header)
+    own = ["LL exact"] if "log_likelihood_exact" in metrics else []  # a closed-form family's own metric
+    assert header == TABLE_HEADER + (RECALIBRATED_HEADER if recalibrated else []) + own, (model, header)
     assert rows and rows[-1][0] == "mean", (model, rows)
     last = 1 + N_DENSITY_COLUMNS
     for row in rows:

@@ -15,12 +15,35 @@ import pytest
 import yaml
 from src.tables import main as tables_main
 
-from image2sphere.reporting import build_sweep_table, build_table, find_runs, load_layouts, sweep_to_markdown
+from image2sphere.reporting import (
+    build_sweep_table,
+    build_table,
+    counted_runs,
+    find_runs,
+    load_layouts,
+    sweep_to_markdown,
+)
 
 LAYOUTS = load_layouts()
 CHOICES = {"table": None, "dataset": "symsol_rendered", "model": "i2s", "encoder": "resnet18", "logger": "csv",
            "trainer": "default", "hydra/sweeper": "basic"}  # fmt: skip
 METRICS = {"acc15": 0.5, "acc30": 0.6, "median_error_deg": 40.0, "log_likelihood": 1.0}
+
+
+def write_checkpoint(path: Path, epochs: int, steps: int | None = None, mid_epoch: bool = False) -> Path:
+    """A checkpoint as Lightning writes it, with only the parts that say how far training got: ``epochs``
+    whose batches were all done (3 batches each), written at an epoch's end or ``mid_epoch`` (after 1 batch
+    of the next)."""
+    import torch
+
+    batches = {"current": {"processed": 1 if mid_epoch else 3}, "is_last_batch": not mid_epoch}
+    loops = {"fit_loop": {"epoch_progress": {"current": {"processed": epochs, "completed": max(epochs - 1, 0)}},
+                          "epoch_loop.batch_progress": batches}}  # fmt: skip
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {"epoch": max(epochs - 1, 0), "global_step": 3 * epochs if steps is None else steps, "loops": loops,
+             "state_dict": {"w": torch.zeros(2)}}  # fmt: skip
+    torch.save(state, path)
+    return path
 
 
 def write_run(
@@ -43,8 +66,8 @@ def write_run(
     (run / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(overrides))
     if resumed is not None:
         (run / "resumed_config.yaml").write_text(yaml.safe_dump({**base, **resumed}))
-    (run / "checkpoints").mkdir()
-    (run / "checkpoints" / "last.ckpt").write_bytes(b"not read")
+    effective = {**base, **(resumed if resumed is not None else config)}
+    write_checkpoint(run / "checkpoints" / "last.ckpt", effective["trainer"]["max_epochs"])  # trained to its end
     if metrics is not None:
         (run / "metrics.json").write_text(json.dumps(metrics))
     return run
@@ -166,7 +189,8 @@ def test_resumed_jobs_of_a_real_sweep_land_in_their_rows(tmp_path):
     markdown = sweep_to_markdown(build_sweep_table(found))
     header = next(line for line in markdown.splitlines() if line.startswith("| "))
     assert header.split("|")[1].strip() == "lmax" and "ckpt_path" not in markdown, markdown
-    lmax_cells = [line.split("|")[1].strip() for line in markdown.splitlines() if line.startswith("| ")][1:]
+    main_table = markdown.split("\n\n")[2]  # after the heading and the explanation; further tables follow
+    lmax_cells = [line.split("|")[1].strip() for line in main_table.splitlines() if line.startswith("| ")][1:]
     assert lmax_cells == ["2", "4"], markdown
 
 
@@ -183,3 +207,82 @@ def test_a_left_over_start_is_told_apart_from_a_run_that_stopped(tmp_path):
     assert runs == [] and sorted(reasons) == ["a", "b"]
     assert "only .hydra/ and the log" in reasons["a"] and "only .hydra/" not in reasons["b"]
     assert reasons["b"].startswith("no metrics.json")
+
+
+# ------------------------------------------------------------------------------------- finished or not
+def test_which_runs_with_metrics_are_finished(tmp_path):
+    """A run counts when it trained to its configured end and tested the whole test set; what each of the
+    others is, as src.tables lists it."""
+    root = tmp_path / "runs"
+    write_run(root / "done", {}, [])  # 5 epochs of 5
+    write_run(root / "smoke", {"trainer": {"max_epochs": 5, "fast_dev_run": True}}, [])
+    write_run(root / "part_test", {"trainer": {"max_epochs": 5, "limit_test_batches": 2}}, [])
+    write_run(root / "tenth_test", {"trainer": {"max_epochs": 5, "limit_test_batches": 0.1}}, [])
+    write_run(root / "budget", {"trainer": {"max_epochs": 5, "limit_train_batches": 2, "limit_test_batches": 1.0}}, [])
+    write_checkpoint(write_run(root / "stopped", {}, []) / "checkpoints" / "last.ckpt", 2)
+    write_checkpoint(write_run(root / "mid_epoch", {}, []) / "checkpoints" / "last.ckpt", 2, mid_epoch=True)
+    steps = write_run(root / "steps", {"trainer": {"max_epochs": 5, "max_steps": 4}}, [])
+    write_checkpoint(steps / "checkpoints" / "last.ckpt", 1, steps=4)  # ended at max_steps, as configured
+    tested = write_run(root / "test_only", {"train": False}, [])  # train=false: only tests a checkpoint
+    write_checkpoint(tested / "checkpoints" / "last.ckpt", 1)
+    (write_run(root / "no_ckpt", {}, []) / "checkpoints" / "last.ckpt").unlink()  # nothing says it stopped
+    broken = write_run(root / "broken_ckpt", {}, [])
+    (broken / "checkpoints" / "last.ckpt").write_bytes(b"PK\x03\x04 truncated")
+    runs, unfinished = find_runs([root])
+    reasons = {r.path.name: r.incomplete for r in runs}
+    assert unfinished == [] and reasons == {
+        "done": None,
+        "smoke": "fast_dev_run",
+        "part_test": "limit_test_batches=2: tested on at most 2 batches of the test set",
+        "tenth_test": "limit_test_batches=0.1: tested on 10% of the batches of the test set",
+        "budget": None,
+        "stopped": "unfinished: stopped after epoch 2 of 5",
+        "mid_epoch": "unfinished: stopped during epoch 3 of 5",
+        "steps": None,
+        "test_only": None,
+        "no_ckpt": None,
+        "broken_ckpt": None,
+    }
+    (note,) = next(r for r in runs if r.path.name == "broken_ckpt").notes
+    assert "last.ckpt is not readable" in note and "unknown" in note
+    counted, left_out = counted_runs(runs)
+    assert {r.path.name for r in left_out} == {"smoke", "part_test", "tenth_test", "stopped", "mid_epoch"}
+    assert counted_runs(runs, include_unfinished=True) == (runs, [])
+
+
+def test_a_resumed_run_is_finished_by_its_own_schedule(tmp_path):
+    """A resume reads its epochs against resumed_config.yaml; one that had nothing left to train (no checkpoint
+    of its own) is read by the checkpoint it started from."""
+    _, resume = origin_and_resume(tmp_path, ["trainer.max_epochs=3"], {"lmax": 4, "trainer": {"max_epochs": 3}})
+    write_checkpoint(resume / "checkpoints" / "last.ckpt", 2)  # .hydra/config.yaml's 5 epochs are not its own
+    (run,), _ = find_runs([resume])
+    assert run.incomplete == "unfinished: stopped after epoch 2 of 3"
+    (resume / "checkpoints" / "last.ckpt").unlink()
+    write_checkpoint(run.resumed_from, 3)  # the original's checkpoint: 3 epochs
+    (run,), _ = find_runs([resume])
+    assert run.incomplete is None
+
+
+def test_runs_not_counted_are_listed_and_counted_only_when_asked(tmp_path, capsys):
+    sweep = tmp_path / "sweep"
+    for job, (lmax, acc) in enumerate(((2, 0.2), (2, 0.4), (4, 0.8))):
+        metrics = {**METRICS, "acc15": acc}
+        write_run(sweep / str(job), {"lmax": lmax}, [f"lmax={lmax}", f"seed={job}"], mode="MULTIRUN", metrics=metrics)
+    stopped = sweep / "1"
+    write_checkpoint(stopped / "checkpoints" / "last.ckpt", 1)
+    assert tables_main([str(sweep), "--out", str(tmp_path / "a")]) == 0
+    printed = capsys.readouterr()
+    header, *rows = [line.split(" | ") for line in printed.out.splitlines() if line.startswith("| ")][:3]
+    acc15, runs = header.index("acc@15"), header.index("runs |")
+    assert [(r[0], r[acc15], r[runs]) for r in rows] == [("| 2", "0.200", "1 |"), ("| 4", "0.800", "1 |")]
+    assert f"- not counted: `{stopped}` (unfinished: stopped after epoch 1 of 5)" in printed.out
+    assert f"not counted: {stopped} (unfinished: stopped after epoch 1 of 5)" in printed.err.splitlines()
+    assert "### Sweep: 2 finished runs, 2 settings" in printed.out
+    assert tables_main([str(sweep), "--out", str(tmp_path / "b"), "--include-unfinished"]) == 0
+    printed = capsys.readouterr()
+    header, *rows = [line.split(" | ") for line in printed.out.splitlines() if line.startswith("| ")][:3]
+    assert [(r[0], r[acc15], r[runs]) for r in rows] == [("| 2", "0.300 ± 0.141", "2 (1 unfinished) |"),
+                                                            ("| 4", "0.800", "1 |")]  # fmt: skip
+    assert "### Sweep: 2 finished runs and 1 unfinished, 2 settings" in printed.out
+    assert f"- counted although unfinished: `{stopped}` (unfinished: stopped after epoch 1 of 5)" in printed.out
+    assert "not counted" not in printed.out + printed.err

@@ -91,9 +91,15 @@ def write_run(sweep: Path, job: int, overrides: list[str], metrics: dict | None,
     return run
 
 
-def table_rows(markdown: str) -> list[dict[str, str]]:
-    """The rows of the first Markdown table, as ``column title -> cell``."""
-    lines = [line for line in markdown.splitlines() if line.startswith("| ")]
+def table_rows(markdown: str, title: str | None = None) -> list[dict[str, str]]:
+    """The rows of the first Markdown table (or of the one under the line ``<title>:``), as ``column title -> cell``."""
+    text = markdown.split(f"\n{title}:\n", 1)[1] if title else markdown
+    lines = []
+    for line in text.splitlines():
+        if line.startswith("| "):
+            lines.append(line)
+        elif lines and not line.startswith("|"):
+            break  # the end of the table
     header = [c.strip() for c in lines[0].strip().strip("|").split("|")]
     return [dict(zip(header, [c.strip() for c in line.strip().strip("|").split("|")], strict=True))
             for line in lines[1:]]  # fmt: skip
@@ -274,21 +280,64 @@ def test_an_objective_that_is_no_column_is_added_and_a_basic_sweep_keeps_job_ord
 
 
 # ------------------------------------------------------------------------------------- files, errors
-def test_existing_files_are_not_replaced_without_force(tmp_path, capsys):
+def _files_state(*paths: Path) -> list[tuple[bytes, int]]:
+    return [(p.read_bytes(), p.stat().st_mtime_ns) for p in paths]
+
+
+def test_a_second_run_prints_the_table_again_and_never_replaces_a_file_without_force(tmp_path, capsys):
+    sweep = tmp_path / "s"
+    write_run(sweep, 0, ["lmax=2"], metrics_of(1.0, 10.0, 0.1, 0.5, 0.6, 20.0))
+    write_run(sweep, 1, ["lmax=4"], metrics_of(2.0, 10.0, 0.1, 0.5, 0.6, 20.0))
+    md, tex = sweep / "tables" / "sweep.md", sweep / "tables" / "sweep.tex"
+    assert tables_main([str(sweep)]) == 0
+    first = capsys.readouterr()
+    assert first.out.startswith("### Sweep: 2 finished runs, 2 settings")
+    assert first.out.endswith(f"\nwrote {md}, {tex}\n") and "out of date" not in first.err
+    written = _files_state(md, tex)
+
+    # the same runs again: the same table printed, the files left alone, one line saying so
+    assert tables_main([str(sweep)]) == 0
+    second = capsys.readouterr()
+    table = first.out.rsplit("\nwrote ", 1)[0]
+    assert second.out == f"{table}\n{md}, {tex}: up to date (the same as this table), not written again\n"
+    assert second.err == first.err and _files_state(md, tex) == written
+
+    # a run finished since: the new table is printed, the files are out of date and left as they are
+    write_run(sweep, 2, ["lmax=8"], metrics_of(3.0, 10.0, 0.1, 0.5, 0.6, 20.0))
+    assert tables_main([str(sweep)]) == 0
+    third = capsys.readouterr()
+    assert [r["lmax"] for r in table_rows(third.out)] == ["2", "4", "8"]
+    assert "wrote" not in third.out and "up to date" not in third.out
+    (line,) = [line for line in third.err.splitlines() if "out of date" in line]
+    assert line == (f"warning: {md}, {tex} are out of date (runs finished or changed since, or the file was edited); "
+                    "nothing was written: pass --force to replace, or --out <another folder>")  # fmt: skip
+    assert _files_state(md, tex) == written
+
+    # --force replaces them with the table printed; a missing file is written without it, the others kept
+    assert tables_main([str(sweep), "--force"]) == 0
+    forced = capsys.readouterr()
+    assert forced.out.endswith(f"\nreplaced {md}, {tex}\n") and md.read_text() in forced.out
+    tex.unlink()
+    kept = _files_state(md)
+    assert tables_main([str(sweep)]) == 0
+    up_to_date = f"{md}: up to date (the same as this table), not written again"
+    assert capsys.readouterr().out.endswith(f"\nwrote {tex}\n{up_to_date}\n")
+    assert _files_state(md) == kept and tex.is_file()
+
+
+def test_an_edited_file_is_out_of_date_and_kept(tmp_path, capsys):
     sweep = tmp_path / "s"
     write_run(sweep, 0, ["lmax=2"], metrics_of(1.0, 10.0, 0.1, 0.5, 0.6, 20.0))
     write_run(sweep, 1, ["lmax=4"], metrics_of(2.0, 10.0, 0.1, 0.5, 0.6, 20.0))
     assert tables_main([str(sweep)]) == 0
     md, tex = sweep / "tables" / "sweep.md", sweep / "tables" / "sweep.tex"
-    assert md.read_text().startswith("### Sweep: 2 finished runs, 2 settings") and tex.is_file()
     md.write_text("my edits")
+    tex.unlink()  # missing beside an out-of-date file: not written either, the set stays as it was
     capsys.readouterr()
-    assert tables_main([str(sweep)]) == 2
-    err = capsys.readouterr().err
-    assert "sweep.md" in err and "--force" in err and md.read_text() == "my edits"
-    tex.unlink()
-    assert tables_main([str(sweep), "--force"]) == 0
-    assert md.read_text().startswith("### Sweep") and tex.is_file()
+    assert tables_main([str(sweep)]) == 0
+    printed = capsys.readouterr()
+    assert "### Sweep" in printed.out and f"warning: {md} is out of date" in printed.err
+    assert md.read_text() == "my edits" and not tex.exists()
 
 
 def test_a_single_run_that_is_no_sweep_job_is_still_refused(tmp_path, capsys):
@@ -332,7 +381,9 @@ def test_latex_output_is_escaped_and_every_row_has_every_cell(tmp_path):
         unescaped = re.sub(r"\\.", "", line.replace(r"\\", ""))
         assert unescaped.count("&") == 8, line  # two keys, six metrics, runs
         assert "_" not in unescaped and "±" not in line and "—" not in line, line
-    assert tex.count(r"\begin{tabular}") == tex.count(r"\end{tabular}") == 1
+    # the tables of the further metrics each have their own tabular: numbers and timings, the HDR coverage
+    assert tex.count(r"\begin{tabular}") == tex.count(r"\end{tabular}") == 3
+    assert r"\label{tab:sweep-1}" in tex and r"\label{tab:sweep-2}" in tex and r"& 50\% \\" in tex
 
 
 def test_wandb_gets_the_sweep_table(tmp_path, monkeypatch):
@@ -389,3 +440,76 @@ def test_a_real_sweep_is_tabulated(tmp_path):
         assert row["med.err"] == f"{metrics['median_error_deg']:.2f}"
     assert "not finished" not in proc.stdout + proc.stderr
     assert (sweep / "tables" / "sweep.md").read_text() in proc.stdout and (sweep / "tables" / "sweep.tex").is_file()
+
+
+# ------------------------------------------------------------------------------------- every metric, the sweep's end
+def test_a_method_s_own_metric_is_a_column_and_timings_are_under_the_table(tmp_path):
+    """rotation_flow's log_likelihood_exact (and a metric of one's own) get columns after the headline ones,
+    n/a for the run without them; the timings, loss and HDR coverage are in tables of their own below."""
+    sweep = tmp_path / "s"
+    write_run(sweep, 0, ["model=rotation_flow"], metrics_of(1.0, 10.0, 0.1, 0.5, 0.6, 20.0, log_likelihood_exact=1.25,
+                                                           my_score=3.0))  # fmt: skip
+    write_run(sweep, 1, ["model=i2s"], metrics_of(2.0, 10.0, 0.2, 0.5, 0.6, 20.0, recalibration_seconds=0.25))
+    markdown = sweep_to_markdown(build_sweep_table(find_runs([sweep])[0]))
+    rows = table_rows(markdown)
+    assert list(rows[0]) == ["model", "log lik.", "spread", "ECE", "acc@15", "acc@30", "med.err", "LL exact",
+                             "my_score", "runs"]  # fmt: skip
+    assert [(r["model"], r["LL exact"], r["my_score"]) for r in rows] == [("rotation_flow", "1.250", "3.000"),
+                                                                         ("i2s", "n/a", "n/a")]  # fmt: skip
+    further = table_rows(markdown, "Further numbers (test loss, temperature, test images; wall times in seconds)")
+    assert further == [
+        {"model": "rotation_flow", "loss": "10.000", "test images": "6", "train (s)": "1.0", "recalibration (s)": "n/a",
+         "test (s)": "0.5"},
+        {"model": "i2s", "loss": "10.000", "test images": "6", "train (s)": "1.0", "recalibration (s)": "0.2",
+         "test (s)": "0.5"},
+    ]  # fmt: skip
+    title = next(line[:-1] for line in markdown.splitlines() if line.startswith("HDR coverage"))
+    coverage = table_rows(markdown, title)
+    assert [(r["model"], r["50%"]) for r in coverage] == [("rotation_flow", "0.500"), ("i2s", "0.500")]
+
+
+def test_a_sweep_ends_with_its_tables_command(tmp_path, monkeypatch, capsys):
+    """The Hydra callback of conf/hydra/default.yaml, called as Hydra calls it when a multirun has ended: one
+    line naming the sweep's directory (relative to where src.train ran), which src.tables then reads."""
+    from omegaconf import OmegaConf
+
+    from image2sphere.training.hydra_callbacks import PrintSweepTableCommand
+
+    sweep = tmp_path / "logs" / "train" / "multiruns" / "2026-01-01_00-00-00_1"
+    write_run(sweep, 0, ["lmax=2"], metrics_of(1.0, 10.0, 0.1, 0.5, 0.6, 20.0))
+    write_run(sweep, 1, ["lmax=4"], metrics_of(2.0, 10.0, 0.1, 0.5, 0.6, 20.0))
+    for name in ("RANK", "LOCAL_RANK", "NODE_RANK", "GROUP_RANK", "SLURM_NTASKS", "SLURM_PROCID"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.chdir(tmp_path)
+
+    def config(job: str = "train", directory: str = "${paths.log_dir}/train/multiruns/2026-01-01_00-00-00_1"):
+        return OmegaConf.create({"paths": {"log_dir": str(tmp_path / "logs")},
+                                 "hydra": {"sweep": {"dir": directory}, "job": {"name": job}}})  # fmt: skip
+
+    callback = PrintSweepTableCommand()
+    callback.on_multirun_end(config())
+    printed = capsys.readouterr()
+    assert printed.out == "Table of this sweep: python -m src.tables logs/train/multiruns/2026-01-01_00-00-00_1\n"
+    assert printed.err == ""
+    command = printed.out.split("python -m src.tables ")[1].split()
+    assert tables_main(command) == 0 and "### Sweep: 2 finished runs, 2 settings" in capsys.readouterr().out
+    # a sweep of src.eval, a DDP rank other than 0, a sweep that wrote no directory: no line
+    callback.on_multirun_end(config(job="eval"))
+    callback.on_multirun_end(config(directory=str(tmp_path / "never_made")))
+    monkeypatch.setenv("LOCAL_RANK", "1")
+    callback.on_multirun_end(config())
+    assert capsys.readouterr() == ("", "")
+    monkeypatch.delenv("LOCAL_RANK")
+    monkeypatch.chdir(sweep)  # run from elsewhere: the absolute directory, quoted for a shell where needed
+    spaced = tmp_path / "my sweeps"
+    spaced.mkdir()
+    callback.on_multirun_end(config(directory=str(spaced)))
+    assert capsys.readouterr().out == f"Table of this sweep: python -m src.tables '{spaced}'\n"
+
+
+def test_the_callback_is_registered_for_every_entry_point():
+    """conf/hydra/default.yaml (used by src.train, src.eval and src.predict) names the callback; it prints only
+    after a sweep of src.train (test above)."""
+    config = yaml.safe_load((Path(__file__).resolve().parents[1] / "conf" / "hydra" / "default.yaml").read_text())
+    targets = [c["_target_"] for c in config["callbacks"].values()]
+    assert "image2sphere.training.hydra_callbacks.PrintSweepTableCommand" in targets

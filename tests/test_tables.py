@@ -253,26 +253,29 @@ def test_unfinished_and_broken_runs_are_reported_not_skipped(tmp_path, capsys):
     assert lines[("I2S", "ours")] == ["0.600", "0.600", "40.0"]
 
 
-def test_cli_refuses_to_overwrite_and_names_the_files(tmp_path, capsys):
+def test_cli_prints_again_and_never_replaces_a_file_without_force(tmp_path, capsys):
     sweep = tmp_path / "sweep"
-    make_run(
-        sweep,
-        "0",
-        {"table": "table7", "model": "i2s", "dataset": "modelnet10_limited"},
-        {"lmax": 2},
-        accuracy_metrics(0.5, 0.6, 40),
-    )
+    make_run(sweep, "0", {"table": "table6", "model": "i2s", "dataset": "modelnet10_limited"}, {},
+             accuracy_metrics(0.5, 0.6, 40))  # fmt: skip
     assert tables_main([str(sweep)]) == 0
-    md = sweep / "tables" / "table7.md"
-    assert md.is_file() and (sweep / "tables" / "table7.tex").is_file() and (sweep / "tables" / "table7.png").is_file()
-    md.write_text("my edits")
-    capsys.readouterr()
-    assert tables_main([str(sweep)]) == 2
-    err = capsys.readouterr().err
-    assert "table7.md" in err and "--force" in err
-    assert md.read_text() == "my edits"
+    files = [sweep / "tables" / "table6.md", sweep / "tables" / "table6.tex"]  # Table 6 has no figure
+    assert capsys.readouterr().out.endswith(f"\nwrote {files[0]}, {files[1]}\n")
+    state = [(f.read_bytes(), f.stat().st_mtime_ns) for f in files]
+    # again: the same table is printed, nothing is written (the figure's case: test_figures_...)
+    assert tables_main([str(sweep)]) == 0
+    again = capsys.readouterr().out
+    assert again.startswith("### Table 6")
+    assert again.endswith(f"\n{files[0]}, {files[1]}: up to date (the same as this table), not written again\n")
+    assert [(f.read_bytes(), f.stat().st_mtime_ns) for f in files] == state
+    files[0].write_text("my edits")
+    assert tables_main([str(sweep)]) == 0
+    printed = capsys.readouterr()
+    assert printed.out.startswith("### Table 6") and f"warning: {files[0]} is out of date" in printed.err
+    assert "--force" in printed.err and files[0].read_text() == "my edits"
     assert tables_main([str(sweep), "--force"]) == 0
-    assert md.read_text().startswith("### Table 7")
+    assert files[0].read_text().startswith("### Table 6")
+    assert capsys.readouterr().out.endswith(f"\nreplaced {files[0]}\n{files[1]}: up to date (the same as this "
+                                            "table), not written again\n")  # fmt: skip
 
 
 def test_cli_errors_name_the_problem(tmp_path, capsys):
@@ -350,6 +353,9 @@ def test_figures_line_and_bars_and_none_without_values(tmp_path):
                  accuracy_metrics(acc, acc, 40))  # fmt: skip
     png = draw_figure(build_table("table7", LAYOUTS["table7"], find_runs([tmp_path / "l"])[0]), tmp_path / "t7.png")
     assert png is not None and Image.open(png).size[0] > 500
+    # drawn again, the same bytes: src.tables compares a new figure with the file to tell whether it is up to date
+    again = draw_figure(build_table("table7", LAYOUTS["table7"], find_runs([tmp_path / "l"])[0]), tmp_path / "a.png")
+    assert again.read_bytes() == png.read_bytes()
     make_run(
         tmp_path / "b",
         "0",
@@ -438,3 +444,22 @@ def test_wandb_project_defaults_to_the_runs_own(tmp_path, monkeypatch):
     calls.clear()
     assert tables_main([str(tmp_path / "p"), "--out", str(tmp_path / "o3")]) == 0
     assert not calls  # no wandb unless asked
+
+
+def test_a_smoke_run_is_not_counted_unless_asked_and_then_marked(tmp_path, capsys):
+    sweep = tmp_path / "sweep"
+    choices = {"table": "table6", "model": "i2s", "dataset": "modelnet10_limited"}
+    make_run(sweep, "0", choices, {}, accuracy_metrics(0.5, 0.6, 40))
+    smoke_config = {"seed": 1, "trainer": {"fast_dev_run": True}}
+    smoke = make_run(sweep, "1", choices, smoke_config, accuracy_metrics(0.1, 0.2, 90))
+    assert tables_main([str(sweep), "--out", str(tmp_path / "a")]) == 0
+    printed = capsys.readouterr()
+    assert table_lines(printed.out)[("I2S", "ours")] == ["0.500", "0.600", "40.0"]
+    assert "| I2S | ours (1 run) |" in printed.out and f"- not counted: `{smoke}` (fast_dev_run)" in printed.out
+    assert f"not counted: {smoke} (fast_dev_run)" in printed.err.splitlines()
+    assert tables_main([str(sweep), "--out", str(tmp_path / "b"), "--include-unfinished"]) == 0
+    printed = capsys.readouterr()
+    assert table_lines(printed.out)[("I2S", "ours")] == ["0.300 ± 0.283", "0.400 ± 0.283", "65.0 ± 35.4"]
+    assert "| I2S | ours (2 runs, 1 unfinished) |" in printed.out
+    assert f"- counted although unfinished: `{smoke}` (fast_dev_run)" in printed.out
+    assert "1 of the runs are trainer.fast_dev_run smoke tests" in printed.out

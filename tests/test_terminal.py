@@ -10,7 +10,6 @@ import warnings
 from pathlib import Path
 from unittest import mock
 
-import image2sphere  # noqa: F401  (the torchvision guard, before Lightning)
 import lightning.pytorch as pl
 import pytest
 from lightning.pytorch.loggers import CSVLogger

@@ -41,7 +41,17 @@ from typing import Any
 
 import yaml
 
-__all__ = ["OWN_GROUPS", "RESUMED_CONFIG", "Run", "UnfinishedRun", "find_runs", "values_equal"]
+__all__ = [
+    "LAST_CHECKPOINT",
+    "OWN_GROUPS",
+    "RESUMED_CONFIG",
+    "Run",
+    "UnfinishedRun",
+    "counted_runs",
+    "find_runs",
+    "incomplete_reason",
+    "values_equal",
+]
 
 _MISSING = object()
 # the config a resumed run really used (written by src.train beside .hydra/)
@@ -49,6 +59,8 @@ RESUMED_CONFIG = "resumed_config.yaml"
 # groups whose choice a resumed run takes from its own command line, as its config does: where and how it
 # runs (and every group of Hydra's own, hydra/...); any other group's choice is the original run's
 OWN_GROUPS = ("trainer", "logger", "callbacks", "paths", "debug", "hydra")
+# where a run's checkpoint of its last epoch lies, relative to the run directory (conf/callbacks/model_checkpoint.yaml)
+LAST_CHECKPOINT = Path("checkpoints") / "last.ckpt"
 # how far a resume of a resume of ... is followed back
 _MAX_RESUMES = 50
 _INTERPOLATION = re.compile(r"^\$\{([\w.]+)\}$")
@@ -69,6 +81,9 @@ class Run:
     resumed_from: Path | None = None
     # what a reader of a table should know about how this run was read (e.g. choices that are unknown)
     notes: list[str] = field(default_factory=list)
+    # why the run, although it has metrics, did not train and test as configured (``fast_dev_run``,
+    # ``unfinished: stopped after epoch 3 of 40``...; :func:`incomplete_reason`); None for a finished run
+    incomplete: str | None = None
 
     def get(self, key: str, default: Any = _MISSING) -> Any:
         """A group's choice (``model``) or a dotted config value (``model.net.lmax``); ``default``
@@ -266,10 +281,104 @@ def _read_run(path: Path) -> Run | UnfinishedRun:
                 "(left by a version before such starts removed their directory; safe to delete once no run uses it)"
             )
         return UnfinishedRun(path, reason)
-    return Run(
+    run = Run(
         path=path, metrics=metrics, choices=setting.choices, config=setting.config, overrides=setting.overrides,
-        hydra=setting.hydra, resumed_from=setting.resumed_from, notes=setting.notes,
+        hydra=setting.hydra, resumed_from=setting.resumed_from, notes=list(setting.notes),
     )  # fmt: skip
+    run.incomplete = incomplete_reason(run)
+    return run
+
+
+# ---------------------------------------------------------------------------------------- finished or not
+def _limited(value: Any) -> bool:
+    """Whether a ``trainer.limit_*_batches`` value leaves batches out: an integer is a number of batches, a
+    fraction below 1.0 a share of them; ``null`` and 1.0 are all."""
+    if value is None or isinstance(value, bool):
+        return False
+    if isinstance(value, str):
+        try:
+            value = int(value) if value.strip().lstrip("+-").isdigit() else float(value)
+        except ValueError:
+            return False
+    return isinstance(value, int) or (isinstance(value, float) and value < 1.0)
+
+
+def _smoke(value: Any) -> bool:
+    """Whether ``trainer.fast_dev_run`` is on: ``true``, or a number of batches above 0."""
+    if isinstance(value, str):
+        value = value.strip().lower()
+        return value not in ("", "false", "0", "null", "none")
+    return bool(value)
+
+
+def _epochs_done(checkpoint: Path) -> tuple[int, int, bool]:
+    """``(epochs, steps, mid_epoch)`` of a training checkpoint: the epochs whose training batches were all done
+    (Lightning's count of epochs processed), the optimiser steps, and whether it was written inside an epoch.
+
+    The file is opened memory-mapped: only its small pickled part is read, not the weights. Raises ``OSError``
+    or ``RuntimeError``/``ValueError``/``KeyError`` for a file that is no readable checkpoint."""
+    import torch
+
+    state = torch.load(checkpoint, map_location="cpu", weights_only=True, mmap=True)
+    steps = int(state.get("global_step", 0) or 0)
+    loop = (state.get("loops") or {}).get("fit_loop") or {}
+    progress = (loop.get("epoch_progress") or {}).get("current") or {}
+    if "processed" in progress:
+        batches = loop.get("epoch_loop.batch_progress") or {}
+        mid_epoch = not batches.get("is_last_batch", True) and int((batches.get("current") or {}).get("processed", 0))
+        return int(progress["processed"]), steps, bool(mid_epoch)
+    return int(state.get("epoch", -1)) + 1, steps, False  # a checkpoint without loop state: its epoch's end
+
+
+def incomplete_reason(run: Run) -> str | None:
+    """Why ``run``, although it wrote ``metrics.json``, does not count as a finished run (None: it does).
+
+    * ``trainer.fast_dev_run``: ``fast_dev_run`` (one batch of each loop);
+    * ``trainer.limit_test_batches`` below all batches (an integer, or a fraction below 1.0): its metrics are
+      of part of the test set. (``limit_train_batches`` and ``limit_val_batches`` are a training budget like
+      ``max_epochs``: a run that trained to the end of that budget is finished);
+    * a run that trained (``train`` true) whose last checkpoint (``checkpoints/last.ckpt``, else the one a
+      resumed run started from) has fewer epochs than ``trainer.max_epochs`` of its config (a resumed run's
+      ``resumed_config.yaml``) and fewer steps than a ``trainer.max_steps`` it sets: ``unfinished: stopped after
+      epoch E of N`` (or ``during epoch E``), e.g. ended by ``trainer.max_time``.
+
+    A ``train=false`` run only tests its checkpoint and is never unfinished; a run without a checkpoint (no
+    ``model_checkpoint`` callback) is counted as finished, as nothing says otherwise."""
+    if _smoke(run.get("trainer.fast_dev_run", False)):
+        return "fast_dev_run"
+    value = run.get("trainer.limit_test_batches", None)
+    if _limited(value):
+        share = f"at most {value} batches" if float(value) >= 1 else f"{float(value):.0%} of the batches"
+        return f"limit_test_batches={value}: tested on {share} of the test set"
+    if str(run.get("train", True)).lower() == "false":
+        return None
+    max_epochs, max_steps = run.get("trainer.max_epochs", None), run.get("trainer.max_steps", None)
+    max_epochs = max_epochs if isinstance(max_epochs, int) and not isinstance(max_epochs, bool) else None
+    max_steps = max_steps if isinstance(max_steps, int) and not isinstance(max_steps, bool) else None
+    if not (max_epochs and max_epochs > 0):
+        return None  # no epoch limit: the run ended at its steps or time, as configured
+    checkpoint = run.path / LAST_CHECKPOINT
+    if not checkpoint.is_file() and run.resumed_from is not None:
+        checkpoint = run.resumed_from  # a resume with nothing left to train writes no checkpoint of its own
+    if not checkpoint.is_file():
+        return None
+    try:
+        epochs, steps, mid_epoch = _epochs_done(checkpoint)
+    except Exception as e:  # noqa: BLE001  (any unreadable file: torch raises many kinds)
+        run.notes.append(f"{checkpoint} is not readable ({type(e).__name__}): whether it finished is unknown")
+        return None
+    if epochs >= max_epochs or (max_steps is not None and max_steps > 0 and steps >= max_steps):
+        return None
+    where = f"during epoch {epochs + 1}" if mid_epoch else f"after epoch {epochs}"
+    return f"unfinished: stopped {where} of {max_epochs}"
+
+
+def counted_runs(runs: list[Run], include_unfinished: bool = False) -> tuple[list[Run], list[Run]]:
+    """``(counted, left_out)``: the runs that enter a table's means, and those that do not (not finished as
+    configured, :attr:`Run.incomplete`), unless ``include_unfinished`` counts every run with metrics."""
+    if include_unfinished:
+        return list(runs), []
+    return [r for r in runs if not r.incomplete], [r for r in runs if r.incomplete]
 
 
 def find_runs(paths: list[str | Path]) -> tuple[list[Run], list[UnfinishedRun]]:

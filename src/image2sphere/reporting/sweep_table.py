@@ -12,10 +12,16 @@ Rules
   seeds of one setting are what a row averages. A key is a column only where its value differs
   between the runs; a run that does not set it on the command line shows its composed value (the
   group's choice or ``.hydra/config.yaml``), ``—`` when its config has no such key.
-* The metrics are the class means of ``metrics.json``, the columns of :data:`SWEEP_METRICS`. A key
-  ``<metric>_calibrated`` of one of them (the metric after recalibration) in any run adds a column
-  right after that metric's. A row none of whose runs has a metric shows ``n/a``. The spread is the sample standard
-  deviation (``n - 1``), shown for two runs or more, as in the paper's tables.
+* The metrics are the class means of ``metrics.json``, every metric any of the runs has, in the fixed order of
+  :func:`~image2sphere.reporting.metrics_table.metric_layout`: the main table has the headline metrics
+  (:data:`SWEEP_METRICS`, always), then the method's own (``log_likelihood_exact``, any key not known there);
+  a key ``<metric>_calibrated`` (the metric after recalibration) adds a column right after that metric's.
+  Under it, where the runs have them (:func:`further_sections`): a table of the run's numbers and timings (test
+  loss, temperature, test images, ``*_seconds``), one of the HDR coverage, one of the HDR coverage after
+  recalibration. A row none of whose runs has a metric shows ``n/a``, never 0. The spread is the sample
+  standard deviation (``n - 1``), shown for two runs or more, as in the paper's tables.
+* The runs are those the caller counts (:func:`~image2sphere.reporting.runs.counted_runs`); runs counted
+  although unfinished (``--include-unfinished``) are marked in the ``runs`` column, ``N (k unfinished)``.
 * The runs of an Optuna study (``hydra.sweeper.direction`` in their ``.hydra/hydra.yaml``) are ordered
   by the study's objective (``optimized_metric``), best first, and its column is marked; any other
   sweep keeps the order of its jobs.
@@ -32,9 +38,17 @@ from typing import Any
 
 import yaml
 
-from image2sphere.reporting.metrics_table import RECALIBRATED_COLUMNS, TABLE_COLUMNS
+from image2sphere.reporting.metrics_table import CALIBRATED, TABLE_COLUMNS, metric_layout
 from image2sphere.reporting.runs import Run
-from image2sphere.reporting.tables import MISSING_MD, MISSING_TEX, Cell, format_cell, latex_escape, md_escape
+from image2sphere.reporting.tables import (
+    MISSING_MD,
+    MISSING_TEX,
+    Cell,
+    format_cell,
+    latex_escape,
+    md_escape,
+    run_status_lines,
+)
 
 __all__ = [
     "SWEEP_METRICS",
@@ -43,6 +57,7 @@ __all__ = [
     "SweepRow",
     "SweepTable",
     "build_sweep_table",
+    "further_sections",
     "is_sweep",
     "metric_columns",
     "study_objective",
@@ -59,7 +74,10 @@ SWEEP_NAME = "sweep"
 # as the test-metrics table that src.train and src.eval print, so that a metric added there (one line)
 # is a column here as well.
 SWEEP_METRICS: tuple[tuple[str, str, str], ...] = TABLE_COLUMNS
-CALIBRATED = "_calibrated"
+# the titles of the tables under the main one
+FURTHER_TITLE = "Further numbers (test loss, temperature, test images; wall times in seconds)"
+COVERAGE_TITLE = ("HDR coverage (class means: the fraction of the (image, rotation) pairs inside the "
+                  "highest-density region of each mass)")  # fmt: skip
 # overrides that are not part of a setting: the seeds are what a row averages over
 NOT_A_SETTING = ("seed",)
 
@@ -149,21 +167,41 @@ def varying_keys(runs: list[Run]) -> list[str]:
 
 # ---------------------------------------------------------------------------------------- metrics
 def metric_columns(runs: list[Run], objective: str | None = None) -> list[tuple[str, str, str]]:
-    """:data:`SWEEP_METRICS`, each followed by its ``_calibrated`` twin where a run has one (titled as in
-    the per-run table's :data:`RECALIBRATED_COLUMNS`, else ``<title> after``); the objective first
-    where it is none of them."""
-    keys = {k for r in runs for k in r.metrics}
-    listed = {m for m, _, _ in SWEEP_METRICS}
-    recalibrated = {m: (m, title, fmt) for m, title, fmt in RECALIBRATED_COLUMNS}
+    """The main table's metrics: :data:`SWEEP_METRICS`, then the method's own that any run has (the layout of
+    :func:`~image2sphere.reporting.metrics_table.metric_layout`), each followed by its ``_calibrated`` twin where
+    a run has one (titled as in the per-run table, e.g. ``LL recal.``); the objective first where it is none of
+    them."""
+    layout = metric_layout(k for r in runs for k in r.metrics)
+    main = [c for c in layout.main if c[0] not in {m for m, _, _ in SWEEP_METRICS}]
+    twins = {m: (m, title, fmt) for m, title, fmt in main if m.endswith(CALIBRATED)}
     columns = []
-    for metric, title, fmt in SWEEP_METRICS:
+    for metric, title, fmt in [*SWEEP_METRICS, *(c for c in main if c[0] not in twins)]:
         columns.append((metric, title, fmt))
-        twin = metric + CALIBRATED
-        if twin in keys and twin not in listed:
-            columns.append(recalibrated.get(twin, (twin, f"{title} after", fmt)))
+        twin = twins.pop(metric + CALIBRATED, None)
+        if twin is not None:
+            columns.append(twin)
+    columns += list(twins.values())  # a recalibrated metric whose own value no run has
     if objective is not None and objective not in {m for m, _, _ in columns}:
         columns.insert(0, (objective, objective, "{:.3f}"))
     return columns
+
+
+def further_sections(runs: list[Run], shown: set[str] = frozenset()) -> list[tuple[str, list[tuple[str, str, str]]]]:
+    """The tables under the main one, ``(title, columns)``: the run's numbers and timings, the HDR coverage,
+    and the HDR coverage after recalibration; each only where a run has one of its metrics, none of ``shown``."""
+    layout = metric_layout(k for r in runs for k in r.metrics)
+    numbers = [*layout.numbers, *((k, f"{title} (s)", fmt) for k, title, fmt in layout.timings)]
+    sections = [
+        (FURTHER_TITLE, numbers),
+        (COVERAGE_TITLE, layout.coverage),
+        ("HDR coverage after recalibration (class means)", layout.coverage_calibrated),
+    ]
+    out = []
+    for title, columns in sections:
+        columns = [c for c in columns if c[0] not in shown]
+        if columns:
+            out.append((title, columns))
+    return out
 
 
 def _digits(fmt: str) -> int:
@@ -190,6 +228,8 @@ def _direction(value: Any) -> str | None:
 
 def study_objective(runs: list[Run]) -> tuple[Objective | None, list[str]]:
     """The objective that every run's sweeper optimised (None where a run has none or they differ), and notes."""
+    if not runs:
+        return None, []
     found = set()
     for run in runs:
         sweeper = run.hydra.get("sweeper") or {}
@@ -215,11 +255,18 @@ def study_objective(runs: list[Run]) -> tuple[Objective | None, list[str]]:
 # ---------------------------------------------------------------------------------------- the table
 @dataclass
 class SweepRow:
-    """One setting: the value of each key (None: absent from the run's config), its runs and metric cells."""
+    """One setting: the value of each key (None: absent from the run's config), its runs and metric cells
+    (``sections``: the cells of each table under the main one)."""
 
     setting: list[str | None]
     runs: list[Run]
     cells: list[Cell]
+    sections: list[list[Cell]] = field(default_factory=list)
+
+    @property
+    def unfinished(self) -> int:
+        """How many of the row's runs are counted although not finished (``--include-unfinished``)."""
+        return sum(1 for r in self.runs if r.incomplete)
 
 
 @dataclass
@@ -230,6 +277,8 @@ class SweepTable:
     objective: Objective | None = None
     notes: list[str] = field(default_factory=list)
     sources: list[str] = field(default_factory=list)
+    # the tables under the main one: (title, columns) of :func:`further_sections`
+    sections: list[tuple[str, list[tuple[str, str, str]]]] = field(default_factory=list)
 
     @property
     def used(self) -> list[Run]:
@@ -242,13 +291,19 @@ def build_sweep_table(runs: list[Run], sources: list[str] | None = None) -> Swee
     objective, notes = study_objective(runs)
     keys = varying_keys(runs)
     columns = metric_columns(runs, objective.metric if objective else None)
+    sections = further_sections(runs, {m for m, _, _ in columns})
     groups: dict[tuple, list[Run]] = {}
     for run in runs:
         groups.setdefault(tuple(repr(_canonical(_value(run, k))) for k in keys), []).append(run)
     rows = []
+
+    def cells_of(members: list[Run], metrics: list[tuple[str, str, str]]) -> list[Cell]:
+        return [Cell(runs=members, values=[r.metrics[m] for r in members if m in r.metrics]) for m, _, _ in metrics]
+
     for members in groups.values():
-        cells = [Cell(runs=members, values=[r.metrics[m] for r in members if m in r.metrics]) for m, _, _ in columns]
-        rows.append(SweepRow([_display(_value(members[0], k)) for k in keys], members, cells))
+        setting = [_display(_value(members[0], k)) for k in keys]
+        extra = [cells_of(members, section) for _, section in sections]
+        rows.append(SweepRow(setting, members, cells_of(members, columns), extra))
         seeds = [str(r.seed) for r in members]
         repeated = sorted({s for s in seeds if seeds.count(s) > 1})
         if repeated:
@@ -261,41 +316,61 @@ def build_sweep_table(runs: list[Run], sources: list[str] | None = None) -> Swee
     smoke = [r for r in runs if r.smoke_test]
     if smoke:
         notes.append(f"{len(smoke)} of the runs are trainer.fast_dev_run smoke tests: their metrics are of one batch")
-    return SweepTable(keys, columns, rows, objective, notes, [str(s) for s in sources or []])
+    return SweepTable(keys, columns, rows, objective, notes, [str(s) for s in sources or []], sections)
 
 
 # ---------------------------------------------------------------------------------------- text
-def _titles(table: SweepTable, up: str, down: str, escape=lambda s: s) -> list[str]:
+def _titles(columns: list[tuple[str, str, str]], objective: Objective | None, up: str, down: str,
+            escape=lambda s: s) -> list[str]:  # fmt: skip
     titles = []
-    for metric, title, _ in table.columns:
-        if table.objective is not None and metric == table.objective.metric:
-            arrow = up if table.objective.direction == "maximize" else down
+    for metric, title, _ in columns:
+        if objective is not None and metric == objective.metric:
+            arrow = up if objective.direction == "maximize" else down
             titles.append(f"{escape(title)} (objective {arrow})")
         else:
             titles.append(escape(title))
     return titles
 
 
-def sweep_lines(table: SweepTable, missing: str, pm: str) -> list[list[str]]:
-    """Each row's cells: the setting's values, the metrics (mean ``pm`` std, ``n/a``), the number of runs."""
+def _runs_cell(row: SweepRow) -> str:
+    return f"{len(row.runs)} ({row.unfinished} unfinished)" if row.unfinished else str(len(row.runs))
+
+
+def _metric_cells(cells: list[Cell], columns: list[tuple[str, str, str]], missing: str, pm: str) -> list[str]:
+    return [format_cell(c, _digits(fmt), missing, pm) for c, (_, _, fmt) in zip(cells, columns, strict=True)]
+
+
+def sweep_lines(table: SweepTable, missing: str, pm: str, section: int | None = None) -> list[list[str]]:
+    """Each row's cells: the setting's values, the metrics (mean ``pm`` std, ``n/a``) and the number of runs
+    (``N (k unfinished)`` where unfinished runs are counted); of the main table, or of ``table.sections[section]``
+    (no number of runs)."""
     out = []
     for row in table.rows:
         setting = [missing if v is None else v for v in row.setting] if table.keys else ["all runs"]
-        metrics = [
-            format_cell(c, _digits(fmt), missing, pm) for c, (_, _, fmt) in zip(row.cells, table.columns, strict=True)
-        ]
-        out.append([*setting, *metrics, str(len(row.runs))])
+        if section is None:
+            out.append([*setting, *_metric_cells(row.cells, table.columns, missing, pm), _runs_cell(row)])
+        else:
+            out.append([*setting, *_metric_cells(row.sections[section], table.sections[section][1], missing, pm)])
     return out
 
 
-def sweep_header(table: SweepTable, up: str = "↑", down: str = "↓", escape=lambda s: s) -> list[str]:
+def sweep_header(table: SweepTable, up: str = "↑", down: str = "↓", escape=lambda s: s,
+                 section: int | None = None) -> list[str]:  # fmt: skip
     """The column titles of :func:`sweep_lines`: the keys (or ``setting``), the metrics, ``runs``."""
-    return [*(escape(k) for k in table.keys or ["setting"]), *_titles(table, up, down, escape), "runs"]
+    keys = [escape(k) for k in table.keys or ["setting"]]
+    if section is not None:
+        return [*keys, *_titles(table.sections[section][1], None, up, down, escape)]
+    return [*keys, *_titles(table.columns, table.objective, up, down, escape), "runs"]
 
 
 def _heading(table: SweepTable) -> str:
     n, settings = len(table.used), len(table.rows)
-    counts = f"{n} finished run{'s' if n != 1 else ''}, {settings} setting{'s' if settings != 1 else ''}"
+    unfinished = sum(row.unfinished for row in table.rows)
+    finished = n - unfinished
+    counts = f"{finished} finished run{'s' if finished != 1 else ''}"
+    if unfinished:
+        counts += f" and {unfinished} unfinished"
+    counts += f", {settings} setting{'s' if settings != 1 else ''}"
     if table.objective is not None:
         study = f" {table.objective.study}" if table.objective.study else ""
         return f"Optuna study{study}: {counts}"
@@ -312,17 +387,24 @@ def _explanation(table: SweepTable) -> str:
     return text
 
 
-def sweep_to_markdown(table: SweepTable, unfinished: list | None = None) -> str:
-    """The table in Markdown, then its legend, the notes and the unfinished runs."""
+def _markdown_table(header: list[str], lines: list[list[str]], keys: int) -> list[str]:
+    out = ["| " + " | ".join(header) + " |", "|" + "---|" * keys + "---:|" * (len(header) - keys)]
+    return out + ["| " + " | ".join(md_escape(c) for c in cells) + " |" for cells in lines]
+
+
+def sweep_to_markdown(table: SweepTable, unfinished: list | None = None, left_out: list[Run] | None = None) -> str:
+    """The table in Markdown, the tables of its further metrics, then its legend, the notes, the runs left
+    out of the means (``left_out``: not finished as configured), those counted although unfinished, and the
+    runs without metrics (``unfinished``)."""
     lines = [f"### {_heading(table)}", ""]
     if table.sources:
         lines += [", ".join(f"`{s}`" for s in table.sources), ""]
     lines += [_explanation(table), ""]
-    header = sweep_header(table, escape=md_escape)
-    lines.append("| " + " | ".join(header) + " |")
-    lines.append("|" + "---|" * max(len(table.keys), 1) + "---:|" * (len(table.columns) + 1))
-    for cells in sweep_lines(table, MISSING_MD, "±"):
-        lines.append("| " + " | ".join(md_escape(c) for c in cells) + " |")
+    keys = max(len(table.keys), 1)
+    lines += _markdown_table(sweep_header(table, escape=md_escape), sweep_lines(table, MISSING_MD, "±"), keys)
+    for i, (title, _) in enumerate(table.sections):
+        header = sweep_header(table, escape=md_escape, section=i)
+        lines += ["", f"{title}:", "", *_markdown_table(header, sweep_lines(table, MISSING_MD, "±", i), keys)]
     legend = (f"{MISSING_MD}: the run's config has no such key; n/a: no run of the row has the metric; ± the sample "
               "standard deviation over the row's runs (seeds), none for a single run.")  # fmt: skip
     recalibrated = [title for m, title, _ in table.columns if m.endswith(CALIBRATED)]
@@ -330,26 +412,34 @@ def sweep_to_markdown(table: SweepTable, unfinished: list | None = None) -> str:
         legend += f" {', '.join(recalibrated)}: after recalibration (`<metric>{CALIBRATED}` of metrics.json)."
     lines += ["", legend]
     lines += [f"- note: {n}" for n in table.notes]
-    for u in unfinished or []:
-        lines.append(f"- not finished: `{u.path}`: {u.reason}")
+    lines += run_status_lines(table.used, left_out or [], unfinished or [])
     return "\n".join(lines) + "\n"
 
 
-def sweep_to_latex(table: SweepTable) -> str:
-    """The table as a LaTeX ``table`` (booktabs), every value escaped."""
-    header = sweep_header(table, r"$\uparrow$", r"$\downarrow$", escape=latex_escape)
-    caption = latex_escape(_explanation(table)).replace("±", r"$\pm$")
+def _latex_table(caption: str, label: str, header: list[str], lines: list[list[str]], keys: int) -> list[str]:
     out = [
         r"\begin{table}[t]",
         r"\centering",
-        r"\caption{" + latex_escape(_heading(table)) + ". " + caption + "}",
-        r"\label{tab:" + SWEEP_NAME + "}",
-        r"\begin{tabular}{" + "l" * max(len(table.keys), 1) + "r" * (len(table.columns) + 1) + "}",
+        r"\caption{" + caption + "}",
+        r"\label{tab:" + label + "}",
+        r"\begin{tabular}{" + "l" * keys + "r" * (len(header) - keys) + "}",
         r"\toprule",
         " & ".join(header) + r" \\",
         r"\midrule",
     ]
-    for cells in sweep_lines(table, MISSING_TEX, "±"):
+    for cells in lines:
         out.append(" & ".join(latex_escape(c).replace("±", r"$\pm$") for c in cells) + r" \\")
-    out += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
+    return out + [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
+
+
+def sweep_to_latex(table: SweepTable) -> str:
+    """The table as a LaTeX ``table`` (booktabs), every value escaped; each table of further metrics after it."""
+    keys = max(len(table.keys), 1)
+    caption = latex_escape(_heading(table)) + ". " + latex_escape(_explanation(table)).replace("±", r"$\pm$")
+    header = sweep_header(table, r"$\uparrow$", r"$\downarrow$", escape=latex_escape)
+    out = _latex_table(caption, SWEEP_NAME, header, sweep_lines(table, MISSING_TEX, "±"), keys)
+    for i, (title, _) in enumerate(table.sections):
+        header = sweep_header(table, escape=latex_escape, section=i)
+        lines = sweep_lines(table, MISSING_TEX, "±", i)
+        out += ["", *_latex_table(latex_escape(title), f"{SWEEP_NAME}-{i + 1}", header, lines, keys)]
     return "\n".join(out) + "\n"

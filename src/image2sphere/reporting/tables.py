@@ -40,6 +40,7 @@ __all__ = [
     "latex_escape",
     "load_layouts",
     "md_escape",
+    "run_status_lines",
     "table_lines",
     "to_latex",
     "to_markdown",
@@ -259,7 +260,10 @@ def table_lines(table: FilledTable, missing: str, pm: str) -> list[tuple[str, st
     columns = table.layout["columns"]
     for row, cells in zip(table.layout["rows"], table.cells, strict=True):
         n = max((len(c.runs) for c, col in zip(cells, columns, strict=True) if "mean_of" not in col), default=0)
+        unfinished = len({r.path for c in cells for r in c.runs if r.incomplete})
         source = f"ours ({n} run{'s' if n != 1 else ''})" if n else "ours"
+        if unfinished:
+            source = source[:-1] + f", {unfinished} unfinished)"
         out.append(
             (
                 row["label"],
@@ -288,9 +292,22 @@ def md_escape(text: str) -> str:
     return text.replace("|", "\\|")
 
 
-def to_markdown(table: FilledTable, unfinished: list | None = None) -> str:
+def run_status_lines(used: list[Run], left_out: list[Run], unfinished: list) -> list[str]:
+    """The list under a table of the runs it does not simply count: those with metrics left out of the means
+    (``left_out``, not finished as configured), those counted although unfinished (``used`` runs with a
+    reason), and the run directories without metrics (``unfinished``)."""
+    lines = [f"- not counted: `{r.path}` ({r.incomplete})" for r in left_out]
+    if left_out:
+        lines.append("- (runs not counted are left out of the means; `--include-unfinished` counts them, marked)")
+    lines += [f"- counted although unfinished: `{r.path}` ({r.incomplete})" for r in used if r.incomplete]
+    lines += [f"- not finished: `{u.path}`: {u.reason}" for u in unfinished]
+    return lines
+
+
+def to_markdown(table: FilledTable, unfinished: list | None = None, left_out: list[Run] | None = None) -> str:
     """The table in Markdown: the paper's rows and columns, three lines per row (ours, the paper's,
-    the difference), then calibration, the notes, unfinished and unmatched runs."""
+    the difference), then calibration, the notes, the runs not counted or counted although unfinished
+    (:func:`run_status_lines`), the runs without metrics and the unmatched runs."""
     layout = table.layout
     titles = _column_titles(table)
     arrows = ["↑" if c["better"] == "higher" else "↓" for c in layout["columns"]]
@@ -312,8 +329,7 @@ def to_markdown(table: FilledTable, unfinished: list | None = None) -> str:
               "have no calibration metrics, written before they existed); ± the sample standard deviation over "
               "runs (seeds); difference: ours minus the paper's."]  # fmt: skip
     lines += [f"- note: {n}" for n in table.notes]
-    for u in unfinished or []:
-        lines.append(f"- not finished: `{u.path}`: {u.reason}")
+    lines += run_status_lines(table.used, left_out or [], unfinished or [])
     for r in table.unmatched:
         lines.append(
             f"- not in this table: `{r.path}` (model={r.get('model', None)}, dataset={r.get('dataset', None)})"

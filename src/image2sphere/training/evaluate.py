@@ -190,7 +190,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
             about = {"ckpt_path": str(cfg.ckpt_path), "eval_grid_level": int(cfg.eval_grid_level),
                      "refine": bool(cfg.refine)} | ({"unfinished": unfinished} if unfinished else {})  # fmt: skip
             json.dump({**metrics, **about}, f, indent=2, sort_keys=True)
-        table = format_metrics_markdown(metrics, module.class_names)
+        table = format_metrics_markdown(metrics, module.class_names, details=True)  # and the coverage, timings
         settings = f"eval grid level {cfg.eval_grid_level}, refine={bool(cfg.refine)}" + (
             f"; UNFINISHED training: {unfinished}" if unfinished else ""
         )

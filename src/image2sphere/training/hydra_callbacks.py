@@ -4,6 +4,8 @@ a run or sweep, before Hydra writes into its directory and before the task. The 
 
 from __future__ import annotations
 
+import logging
+import shlex
 import shutil
 import sys
 from pathlib import Path
@@ -15,7 +17,13 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from image2sphere.training.cluster import is_secondary_rank, is_slurm_requeue
 
-__all__ = ["RefuseExistingOutputDir", "WarnLauncherOfSingleRun", "single_run_launcher_message"]
+__all__ = [
+    "PrintSweepTableCommand",
+    "RefuseExistingOutputDir",
+    "WarnLauncherOfSingleRun",
+    "single_run_launcher_message",
+    "sweep_table_line",
+]
 
 
 class RefuseExistingOutputDir(Callback):
@@ -101,3 +109,61 @@ class WarnLauncherOfSingleRun(Callback):
         message = single_run_launcher_message(config)
         if message:
             print(message, file=sys.stderr, flush=True)
+
+
+def sweep_table_line(sweep_dir: str | Path, cwd: str | Path | None = None) -> str:
+    """The line that ends a sweep of ``src.train``: the ``src.tables`` command that prints its table. The sweep
+    directory is shown relative to ``cwd`` (default: the current folder, where ``python -m`` runs) when it
+    lies below it, as it does with the default ``paths.log_dir``, and quoted for a shell."""
+    path = Path(sweep_dir)
+    here = Path.cwd() if cwd is None else Path(cwd)
+    try:
+        shown = path.resolve().relative_to(here.resolve())
+    except ValueError:
+        shown = path
+    return f"Table of this sweep: python -m src.tables {shlex.quote(str(shown))}"
+
+
+class PrintSweepTableCommand(Callback):
+    """After a multirun of ``python -m src.train`` (``-m``, ``table=tableN``, an Optuna study): one line on
+    stdout with the ``src.tables`` command for the sweep's directory (:func:`sweep_table_line`; for a
+    ``table=tableN`` sweep that command prints the paper's table). It is logged too where the log goes
+    elsewhere than the terminal (Hydra's default logging of the launching process writes to the terminal,
+    which would show it twice).
+
+    Hydra calls ``on_multirun_end`` once, in the process that launched the sweep, after its last job (a
+    launcher that submits the jobs elsewhere, such as SLURM's, returns when they have ended); the jobs
+    themselves, and the ranks Lightning starts for a DDP job (they run the job as a single run), never do. A
+    sweep of another entry point (``src.eval``, ``src.predict``: ``hydra.job.name``) prints nothing, as
+    ``src.tables`` does not tabulate their runs; nor does a sweep whose directory was never made."""
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        if is_secondary_rank() or OmegaConf.select(config, "hydra.job.name", default=None) != "train":
+            return
+        try:  # ${hydra:...} in the directory then resolves to the sweep's values, not its last job's
+            HydraConfig.instance().set_config(config)
+        except (AssertionError, ValueError):  # not a config Hydra composed (a test's): plain values only
+            pass
+        try:
+            sweep_dir = OmegaConf.select(config, "hydra.sweep.dir")
+        except Exception:  # noqa: BLE001  (an unresolvable directory: no line rather than a failed sweep)
+            return
+        if not sweep_dir or not Path(str(sweep_dir)).is_dir():
+            return
+        line = sweep_table_line(str(sweep_dir))
+        print(line, flush=True)
+        logger = logging.getLogger(__name__)
+        if not _logs_to_terminal(logger):  # Hydra's default logging shows it there already: not twice
+            logger.info(line)
+
+
+def _logs_to_terminal(logger: logging.Logger) -> bool:
+    """Whether a record of ``logger`` reaches a handler that writes to stdout or stderr."""
+    terminal = {sys.stdout, sys.stderr, sys.__stdout__, sys.__stderr__}
+    node: logging.Logger | None = logger
+    while node is not None:
+        for handler in node.handlers:
+            if isinstance(handler, logging.StreamHandler) and getattr(handler, "stream", None) in terminal:
+                return True
+        node = node.parent if node.propagate else None
+    return False

@@ -6,6 +6,7 @@ from omegaconf import DictConfig
 import image2sphere  # noqa: F401  (sets up the torchvision guard before Lightning is imported)
 from image2sphere.inference import predict
 from image2sphere.training import register_resolvers
+from image2sphere.training.command_line import check_command_line
 from image2sphere.training.entry import entry_point
 from image2sphere.training.run_config import check_predict_config
 
@@ -24,4 +25,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    check_command_line("predict.yaml")  # a mistyped key or option: one line, before Hydra composes
     main()

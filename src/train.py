@@ -8,6 +8,7 @@ from omegaconf import DictConfig
 
 # image2sphere (imported first by this line) makes torchvision and Lightning importable on CPU torch.
 from image2sphere.training import register_resolvers, train
+from image2sphere.training.command_line import check_command_line
 from image2sphere.training.entry import entry_point
 
 register_resolvers()
@@ -22,4 +23,5 @@ def main(cfg: DictConfig) -> float | None:
 
 
 if __name__ == "__main__":
+    check_command_line("train.yaml")  # a mistyped key or option: one line, before Hydra composes
     main()

@@ -190,3 +190,139 @@ def test_a_refused_job_of_a_multirun_fails_alone(tmp_path):
     assert "Error: lmax must be an integer >= 0, got -1" in proc.stdout  # logged when the job failed
     assert re.search(r"Error executing job with overrides: \[.*'lmax=-1'", proc.stderr), proc.stderr[-3000:]
     assert "\nError: lmax must be an integer >= 0, got -1\n" in proc.stderr and "Traceback" not in proc.stderr
+
+
+# ------------------------------------------------------------------------------------- the checkpoint given
+def _run_with_checkpoints(root: Path) -> Path:
+    """A run directory with ``checkpoints/last.ckpt`` and an older ``epoch=0-step=3.ckpt`` (files the check never
+    opens)."""
+    import os
+
+    run = root / "runs" / "a_run"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "checkpoints" / "epoch=0-step=3.ckpt").write_bytes(b"x")
+    (run / "checkpoints" / "last.ckpt").write_bytes(b"x")
+    os.utime(run / "checkpoints" / "last.ckpt", (1, 1))  # older than the epoch file: last.ckpt still comes first
+    return run
+
+
+def test_a_directory_as_ckpt_path_names_the_checkpoints_in_it(tmp_path):
+    from image2sphere.training.checkpoint import checkpoint_file
+
+    run = _run_with_checkpoints(tmp_path)
+    last = run / "checkpoints" / "last.ckpt"
+    with pytest.raises(FileNotFoundError) as refused:
+        checkpoint_file(run)
+    assert str(refused.value) == (
+        f"ckpt_path={run} is a directory; pass a checkpoint file, e.g. ckpt_path={last} "
+        "(also there: checkpoints/epoch=0-step=3.ckpt)"
+    )
+    with pytest.raises(FileNotFoundError, match=rf"^ckpt_path={run.parent} is a directory; .* ckpt_path={last} "):
+        checkpoint_file(run.parent)  # a folder of runs: their checkpoints/
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match=r"is a directory and holds no checkpoint"):
+        checkpoint_file(tmp_path / "empty")
+    assert checkpoint_file(last) == last
+
+
+@pytest.mark.parametrize("module", ["src.train", "src.eval", "src.predict"])
+def test_every_entry_point_refuses_a_directory_as_ckpt_path_in_one_line(tmp_path, module):
+    run = _run_with_checkpoints(tmp_path)
+    image = tmp_path / "image.png"
+    image.write_bytes(b"")
+    extra = [f"image={image}"] if module == "src.predict" else ["logger=none"]
+    proc = run_module(_command(module, f"ckpt_path={run}", *extra, f"paths.log_dir={tmp_path / 'logs'}"), check=False)
+    assert proc.returncode == 1, proc.stderr
+    assert proc.stderr.splitlines() == [
+        f"Error: ckpt_path={run} is a directory; pass a checkpoint file, e.g. ckpt_path={run}/checkpoints/last.ckpt "
+        "(also there: checkpoints/epoch=0-step=3.ckpt)"
+    ]
+    assert "Seed set" not in proc.stdout + proc.stderr  # the refusal comes before any seeding
+    assert not any((tmp_path / "logs" / module.split(".")[1] / "runs").iterdir())
+
+
+# ------------------------------------------------------------------------------------- another model
+def _fake_run(root: Path, model: str) -> Path:
+    """The path of ``last.ckpt`` in a run directory whose ``.hydra/`` says it trained ``model=<model>``."""
+    run = root / "run"
+    (run / ".hydra").mkdir(parents=True)
+    (run / ".hydra" / "config.yaml").write_text("model: {}\n")
+    (run / ".hydra" / "hydra.yaml").write_text(f"hydra:\n  runtime:\n    choices:\n      model: {model}\n")
+    (run / ".hydra" / "overrides.yaml").write_text("[]\n")
+    return run / "checkpoints" / "last.ckpt"
+
+
+I2S = {"_target_": "image2sphere.training.PoseEstimationModule", "net": {"_target_": "image2sphere.nn.I2S"}}
+FLOW = {"_target_": "image2sphere.training.PoseEstimationModule", "net": {"_target_": "image2sphere.nn.RotationFlow"}}
+CHANGED = {"model.net._target_", "model.net.lmax"}  # what the command line changed, as Hydra composes it
+
+
+def test_a_model_option_other_than_the_checkpoints_is_refused(tmp_path):
+    from image2sphere.training.run_config import check_same_model
+
+    ckpt = str(_fake_run(tmp_path, "i2s"))
+    with pytest.raises(ValueError) as refused:
+        check_same_model({"model": I2S}, {"model": FLOW}, ["model=rotation_flow", "lmax=4"], CHANGED, ckpt)
+    assert str(refused.value) == (
+        f"ckpt_path={ckpt} holds a model=i2s run; model=rotation_flow cannot continue it: drop model=rotation_flow "
+        "to resume it, or leave out ckpt_path to train a new model"
+    )
+    with pytest.raises(ValueError, match="holds a model=i2s run; model=i2s_spatial_filter cannot"):  # same classes
+        check_same_model({"model": I2S}, {"model": I2S}, ["model=i2s_spatial_filter"], {"model.net.filter"}, ckpt)
+    check_same_model({"model": I2S}, {"model": I2S}, ["model=i2s", "trainer.max_epochs=9"], set(), ckpt)
+    check_same_model({"model": I2S}, {"model": I2S}, [], set(), ckpt)  # the checkpoint's own model
+
+
+def test_without_its_run_directory_the_checkpoints_network_class_decides(tmp_path):
+    from image2sphere.training.run_config import check_same_model
+
+    copied = str(tmp_path / "copied.ckpt")  # no .hydra/ above it: its model= option is unknown
+    with pytest.raises(ValueError) as refused:
+        check_same_model({"model": I2S}, {"model": FLOW}, ["model=rotation_flow"], CHANGED, copied)
+    assert str(refused.value) == (
+        f"ckpt_path={copied} holds a run of I2S (model.net._target_); model=rotation_flow (RotationFlow) cannot "
+        "continue it: drop model=rotation_flow to resume it, or leave out ckpt_path to train a new model"
+    )
+    check_same_model({"model": I2S}, {"model": I2S}, ["model=i2s_spatial_filter"], {"model.net.filter"}, copied)
+
+
+def test_weights_that_do_not_fit_name_a_few_parameters_in_one_line():
+    import torch
+
+    from image2sphere.training.checkpoint import CheckpointError, check_resumed_weights
+
+    built = torch.nn.Sequential(torch.nn.Linear(4, 8), torch.nn.Linear(8, 2))
+    saved = torch.nn.Sequential(torch.nn.Linear(4, 16), torch.nn.Linear(16, 2), torch.nn.Linear(2, 2))
+    with pytest.raises(CheckpointError) as refused:
+        check_resumed_weights(built, {"state_dict": saved.state_dict()}, "x/last.ckpt")
+    assert str(refused.value) == (
+        "ckpt_path=x/last.ckpt does not fit the network this command line builds: 2 parameters unexpected (2.bias, "
+        "2.weight); 3 parameters of another shape (0.bias (16,) vs (8,), 0.weight (16, 4) vs (8, 4), 1.weight "
+        "(2, 16) vs (2, 8)); resume without the model.* overrides that change the network's shape, or leave out "
+        "ckpt_path to train a new model"
+    )
+    check_resumed_weights(built, {"state_dict": built.state_dict()}, "x/last.ckpt")
+
+
+@pytest.mark.slow
+def test_resuming_with_another_model_or_network_size_is_one_line_before_training(tiny_run, tmp_path):
+    """The real entry point on the tiny run's checkpoint: ``model=rotation_flow`` is refused before anything is
+    built, ``model.net.sphere_channels=32`` once the network is built; neither leaves a run directory."""
+    ckpt = tiny_run / "checkpoints" / "last.ckpt"
+    logs = tmp_path / "logs"
+    other = run_module(_command("src.train", f"ckpt_path={ckpt}", "model=rotation_flow", "logger=none",
+                                f"paths.log_dir={logs}"), check=False)  # fmt: skip
+    assert other.returncode == 1, other.stderr[-3000:]
+    assert other.stderr.splitlines() == [
+        f"Error: ckpt_path={ckpt} holds a model=i2s run; model=rotation_flow cannot continue it: drop "
+        "model=rotation_flow to resume it, or leave out ckpt_path to train a new model"
+    ]
+    wider = run_train(["model.net.sphere_channels=32", f"ckpt_path={ckpt}", "logger=none"], tmp_path / "data", logs,
+                      check=False)  # fmt: skip
+    assert wider.returncode == 1, wider.stderr[-3000:]
+    # the run's log before it (Lightning's "Seed set to 0"), then the one line; not Lightning's list of every key
+    assert "Missing key" not in wider.stderr and "Traceback" not in wider.stderr, wider.stderr[-3000:]
+    line = wider.stderr.splitlines()[-1]
+    assert line.startswith(f"Error: ckpt_path={ckpt} does not fit the network this command line builds: ")
+    assert "net.s2_conv.weight (16, 4, 9) vs (32, 4, 9)" in line
+    assert not any((logs / "train" / "runs").iterdir())

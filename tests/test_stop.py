@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import signal
 import socket
+import subprocess
 import sys
 import time
 
@@ -52,6 +53,50 @@ def test_the_second_ctrl_c_stops_at_once():
         assert stop.requested() == signal.SIGINT
         with pytest.raises(KeyboardInterrupt):
             _deliver(signal.SIGINT)
+
+
+def test_after_a_second_ctrl_c_one_line_says_what_was_kept_and_the_status_is_130(tmp_path, capsys):
+    with stop.handle_signals():
+        _deliver(signal.SIGINT)
+        interrupt = _caught_base(lambda: _deliver(signal.SIGINT))
+        lightning = _caught_base(_exit_as_lightning_does, interrupt)  # its sys.exit(1) while handling it
+        assert stop.stopped_at_once(interrupt) and stop.stopped_at_once(lightning)
+        assert not stop.stopped_at_once(SystemExit(1))  # an exit without a Ctrl-C behind it
+        empty, kept = tmp_path / "empty" / "checkpoints", tmp_path / "kept" / "checkpoints"
+        empty.mkdir(parents=True)
+        kept.mkdir(parents=True)
+        (kept / "last.ckpt").write_bytes(b"x")
+        for checkpoint, resumed, folder in ((None, None, empty), (None, "a/last.ckpt", None), (kept / "last.ckpt", None,
+                                            kept)):  # fmt: skip
+            ended = _caught_base(stop.exit_at_once, "in epoch 1 (step 3)", checkpoint and str(checkpoint), resumed,
+                                 folder and str(folder))  # fmt: skip
+            assert isinstance(ended, SystemExit) and ended.code == 130
+    assert not empty.exists() and (kept / "last.ckpt").is_file()  # only an empty folder is removed
+    with stop.handle_signals():
+        assert not stop.stopped_at_once(KeyboardInterrupt())  # not the run's: no two Ctrl-C
+    start = "Stopped at once by a second Ctrl-C in epoch 1 (step 3): nothing more was saved; "
+    assert capsys.readouterr().err.splitlines() == [
+        start + "this run wrote no checkpoint",
+        start + "this run wrote no checkpoint (resume again from a/last.ckpt: python -m src.train "
+        "ckpt_path=a/last.ckpt)",
+        start + f"the last checkpoint is {kept / 'last.ckpt'} (resume with python -m src.train "
+        f"ckpt_path={kept / 'last.ckpt'})",
+    ]
+
+
+def _caught_base(function, *args) -> BaseException:
+    try:
+        function(*args)
+    except BaseException as e:  # noqa: BLE001 (the test looks at what ended it)
+        return e
+    raise AssertionError("nothing raised")
+
+
+def _exit_as_lightning_does(interrupt: BaseException) -> None:
+    try:
+        raise interrupt
+    except KeyboardInterrupt:
+        sys.exit(1)
 
 
 def test_nothing_requested_decides_nothing_and_a_new_block_forgets_the_last_request():
@@ -498,3 +543,31 @@ def test_group_alive_sees_a_running_group_and_not_an_ended_one():
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
     assert group_alive(proc.pid) == []
+
+
+@pytest.mark.slow
+def test_a_second_ctrl_c_exits_130_with_one_last_line_naming_the_checkpoint(tmp_path):
+    """Two SIGINTs in the first batch of epoch 1 (the run's own callbacks send them, 3 batches per epoch): the
+    second stops at once, inside that batch. Exit status 130; after wandb's closing lines (offline, not silenced)
+    the last line says where it stopped and names epoch 0's last.ckpt; nothing else was written."""
+    from conftest import ENV, REPO, train_command
+
+    run = tmp_path / "run"
+    send = [f"+callbacks.{name}.{key}={value}" for name, phase in (("first", "forward_backward"),
+            ("second", "optimizer_step")) for key, value in (("_target_", "image2sphere.testing.preemption.SignalAt"),
+            ("phase", phase), ("occurrence", 4), ("signum", int(signal.SIGINT)))]  # fmt: skip
+    cmd = train_command(["trainer.max_epochs=2", *send, f"hydra.run.dir={run}"], tmp_path / "data", tmp_path / "logs")
+    env = {k: v for k, v in ENV.items() if k != "WANDB_SILENT"}
+    with process_group(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as proc:
+        out, err = proc.communicate(timeout=600)
+    last = run / "checkpoints" / "last.ckpt"
+    assert proc.returncode == 130, err[-3000:]
+    assert err.splitlines()[-1] == (
+        "Stopped at once by a second Ctrl-C in epoch 1 (step 3): nothing more was saved; the last checkpoint is "
+        f"{last} (resume with python -m src.train ckpt_path={last})"
+    ), err[-3000:]
+    assert "wandb: Find logs at" in err  # wandb finished before the line, and wrote no escape codes around it
+    assert not [line for line in (out + err).splitlines() if "wandb" in line and "\x1b" in line]
+    assert sorted(p.name for p in last.parent.iterdir()) == ["last.ckpt"]
+    assert torch.load(last, map_location="cpu", weights_only=True)["global_step"] == 3  # epoch 0's end
+    assert not (run / "metrics.json").exists()

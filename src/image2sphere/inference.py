@@ -27,7 +27,7 @@ from image2sphere.distributions.base import PoseDistribution, check_temperature,
 from image2sphere.nn.base import method_of
 from image2sphere.so3.grid_eval import check_streamed_level
 from image2sphere.so3.rotations import matrix_to_angles
-from image2sphere.training.checkpoint import build_module, load_checkpoint
+from image2sphere.training.checkpoint import build_module, checkpoint_file, load_checkpoint
 
 __all__ = ["Predictor", "format_modes", "free_path", "predict"]
 
@@ -199,6 +199,7 @@ def predict(
         threshold = float(check_threshold(threshold))
     if recalibration not in ("auto", "off"):
         raise ValueError(f"recalibration must be auto or off, got {recalibration!r}")
+    checkpoint_file(ckpt_path)  # not a file (e.g. a run's directory): one line, with the checkpoints found
     predictor = Predictor.from_checkpoint(ckpt_path, device, recalibration=recalibration == "auto")
     if predictor.temperature is not None:
         print(f"recalibrated: temperature {predictor.temperature:.4g} from {ckpt_path} (recalibration=off: without)")

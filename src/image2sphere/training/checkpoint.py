@@ -28,7 +28,11 @@ A checkpoint (Lightning's ``.ckpt``) holds ``state_dict``, the plain hyperparame
 and ``run_config``: the resolved Hydra config of the run that wrote it. :func:`load_checkpoint` reads
 it with ``torch.load(..., weights_only=True)``: only tensors and plain containers, never arbitrary
 pickled code; :func:`build_module` rebuilds its model. Every failure names the file and says what did
-not match.
+not match. The entry points check their ``ckpt_path`` first (:func:`checkpoint_file`): a directory given
+instead of a file is refused with the checkpoints found in it as examples (none is picked for the user).
+Weights that do not fit the network they are loaded into (:func:`check_weights_fit`: a rebuilt model, or a
+resumed run whose command line changed the network's size) are refused in one line that names a few of
+the parameters at fault, before Lightning would report every key.
 """
 
 from __future__ import annotations
@@ -58,7 +62,12 @@ __all__ = [
     "batches_done_in_epoch",
     "epoch_resumed_in",
     "build_module",
+    "check_resumed_weights",
+    "checkpoint_file",
+    "checkpoints_in",
+    "check_weights_fit",
     "load_checkpoint",
+    "weights_mismatch",
 ]
 
 log = logging.getLogger(__name__)
@@ -180,9 +189,54 @@ class CheckpointError(ValueError):
     """A checkpoint file that is missing, unreadable, not from this project, or does not fit its model."""
 
 
+def checkpoint_file(path: str | Path, key: str = "ckpt_path") -> Path:
+    """``path`` as a :class:`~pathlib.Path` when it is a file; else :class:`FileNotFoundError` naming ``key``
+    (the command line's key): a path that does not exist, or a directory, with the checkpoints found in it
+    (:func:`checkpoints_in`) as examples of what to pass. None of them is picked: which one to continue from
+    is the user's choice."""
+    file = Path(path)
+    if file.is_file():
+        return file
+    if not file.is_dir():
+        raise FileNotFoundError(
+            f"{key}={path} does not exist; pass the checkpoint of an earlier run, "
+            f"e.g. {key}=logs/train/runs/<run>/checkpoints/last.ckpt"
+        )
+    found = checkpoints_in(file)
+    if not found:
+        raise FileNotFoundError(
+            f"{key}={path} is a directory and holds no checkpoint (*.ckpt in it, in its checkpoints/ or in "
+            f"<run>/checkpoints/ below it); pass a checkpoint file, "
+            f"e.g. {key}=logs/train/runs/<run>/checkpoints/last.ckpt"
+        )
+    also = f" (also there: {', '.join(f.relative_to(file).as_posix() for f in found[1:3])})" if len(found) > 1 else ""
+    raise FileNotFoundError(f"{key}={path} is a directory; pass a checkpoint file, e.g. {key}={found[0]}{also}")
+
+
+def checkpoints_in(folder: Path) -> list[Path]:
+    """The checkpoint files in ``folder`` or its ``checkpoints/`` (a run directory), else in the ``checkpoints/``
+    of the folders in it (a folder of runs): each place's ``last.ckpt`` first, then the newest first."""
+
+    def ordered(files: list[Path]) -> list[Path]:
+        def newest_first(f: Path) -> float:
+            try:
+                return -f.stat().st_mtime
+            except OSError:
+                return 0.0
+
+        return sorted((f for f in files if f.is_file()), key=lambda f: (f.name != "last.ckpt", newest_first(f)))
+
+    own = ordered([*folder.glob("*.ckpt"), *folder.glob("checkpoints/*.ckpt")])
+    return own or ordered(list(folder.glob("*/checkpoints/*.ckpt")))
+
+
 def load_checkpoint(path: str | Path) -> dict:
     """The contents of a training checkpoint, read with ``weights_only=True`` onto the CPU."""
     path = Path(path)
+    if path.is_dir():
+        found = checkpoints_in(path)
+        example = f", e.g. {found[0]}" if found else ""
+        raise CheckpointError(f"{path} is a directory, not a checkpoint file; pass a checkpoint file{example}")
     if not path.is_file():
         raise CheckpointError(
             f"checkpoint not found: {path} (a run writes them to logs/<task>/runs/<run>/checkpoints/last.ckpt)"
@@ -271,23 +325,48 @@ def build_module(ckpt: dict, path: str | Path, **overrides):
         cfg.net.encoder.weights = None
     module = instantiate(cfg)
     state = ckpt["state_dict"]
-    own = module.state_dict()
-    missing = sorted(set(own) - set(state))
-    unexpected = sorted(set(state) - set(own))
-    wrong = sorted(k for k in set(own) & set(state) if own[k].shape != state[k].shape)
-    if missing or unexpected or wrong:
-        parts = []
-        for title, keys in (("missing", missing), ("unexpected", unexpected), ("of another shape", wrong)):
-            if keys:
-                shown = ", ".join(
-                    f"{k} {tuple(state[k].shape)} vs {tuple(own[k].shape)}" if title == "of another shape" else k
-                    for k in keys[:5]
-                )
-                parts.append(f"{len(keys)} parameters {title} ({shown}{', ...' if len(keys) > 5 else ''})")
-        raise CheckpointError(f"{path} does not fit the model its run_config describes: " + "; ".join(parts))
+    check_weights_fit(module, state, f"{path} does not fit the model its run_config describes")
     module.load_state_dict(state)
     module.class_names = list(ckpt["class_names"]) if ckpt.get("class_names") else None
     module.run_config = ckpt["run_config"]
     if ckpt.get("recalibration") is not None:
         module.recalibration = Recalibration.from_dict(ckpt["recalibration"], str(path))
     return module.eval()
+
+
+def weights_mismatch(module: torch.nn.Module, state: dict) -> str | None:
+    """How ``state`` (a state dict) fails to fit ``module``: the parameters and buffers that are missing, that are
+    not the module's, or that have another shape, a few of each named; ``None`` when it fits."""
+    own = module.state_dict()
+    missing = sorted(set(own) - set(state))
+    unexpected = sorted(set(state) - set(own))
+    wrong = sorted(k for k in set(own) & set(state) if tuple(own[k].shape) != tuple(state[k].shape))
+    parts = []
+    for title, keys in (("missing", missing), ("unexpected", unexpected), ("of another shape", wrong)):
+        if keys:
+            shown = ", ".join(
+                f"{k} {tuple(state[k].shape)} vs {tuple(own[k].shape)}" if title == "of another shape" else k
+                for k in keys[:5]
+            )
+            parts.append(f"{len(keys)} parameters {title} ({shown}{', ...' if len(keys) > 5 else ''})")
+    return "; ".join(parts) or None
+
+
+def check_weights_fit(module: torch.nn.Module, state: dict, what: str, advice: str = "") -> None:
+    """:class:`CheckpointError` ``"<what>: <the mismatch><advice>"`` when ``state`` does not fit ``module``
+    (:func:`weights_mismatch`), before Lightning's own report of every key."""
+    mismatch = weights_mismatch(module, state)
+    if mismatch is not None:
+        raise CheckpointError(f"{what}: {mismatch}{advice}")
+
+
+def check_resumed_weights(module: torch.nn.Module, ckpt: dict, ckpt_path: str) -> None:
+    """Refuse to resume ``ckpt`` into ``module`` (the network a resumed run built: the checkpoint's stored model
+    with the command line's changes) when its weights do not fit, naming a few of the parameters at fault."""
+    check_weights_fit(
+        module,
+        ckpt["state_dict"],
+        f"ckpt_path={ckpt_path} does not fit the network this command line builds",
+        advice="; resume without the model.* overrides that change the network's shape, or leave out ckpt_path "
+        "to train a new model",
+    )

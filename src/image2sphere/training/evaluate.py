@@ -32,6 +32,7 @@ from image2sphere.training.checkpoint import (
     CheckpointError,
     batches_done_in_epoch,
     build_module,
+    checkpoint_file,
     epoch_resumed_in,
     load_checkpoint,
 )
@@ -133,14 +134,22 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     output_dir = Path(cfg.paths.output_dir)
     if (output_dir / "metrics.json").exists():
         raise FileExistsError(f"{output_dir / 'metrics.json'} already exists: choose another hydra.run.dir")
-    if cfg.get("seed") is not None:
-        pl.seed_everything(cfg.seed, workers=True)
+    recalibration = cfg.get("recalibration", "auto")
+    target = recalibrated_path(cfg.ckpt_path)
+    if recalibration == "fit" and target.exists():
+        raise FileExistsError(
+            f"{target} already exists (a recalibration fitted earlier): evaluate it with ckpt_path={target}, "
+            "or move it away to fit again"
+        )
+    checkpoint_file(cfg.ckpt_path)  # not a file (e.g. a run's directory): one line, with the checkpoints found
     ckpt = load_checkpoint(cfg.ckpt_path)
     unfinished = unfinished_training(ckpt)
     if unfinished is not None:  # said here, in the table's title and in metrics.json
         log.warning("%s is from an unfinished training: %s", cfg.ckpt_path, unfinished)
     with open_dict(cfg):
         cfg.eval_grid_level = _eval_grid_level(cfg, ckpt)
+    if cfg.get("seed") is not None:  # after the checks of the files, and without Lightning's "Seed set" line
+        pl.seed_everything(cfg.seed, workers=True, verbose=False)
     module = build_module(ckpt, cfg.ckpt_path, eval_grid_level=int(cfg.eval_grid_level), refine=bool(cfg.refine))
     datamodule = _datamodule(cfg, ckpt)
     if cfg.get("batch_size") is not None:
@@ -154,13 +163,6 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
             f"the model takes the class as input and was trained with classes {trained}; the dataset has {names}"
         )
     module.class_names = names or trained
-    recalibration = cfg.get("recalibration", "auto")
-    target = recalibrated_path(cfg.ckpt_path)
-    if recalibration == "fit" and target.exists():
-        raise FileExistsError(
-            f"{target} already exists (a recalibration fitted earlier): evaluate it with ckpt_path={target}, "
-            "or move it away to fit again"
-        )
     loggers = instantiate_list(cfg.get("logger"), "logger")
     trainer: pl.Trainer = instantiate(cfg.trainer, logger=loggers or False, callbacks=[], enable_checkpointing=False)
     if cfg.get("batchnorm_statistics", "stored") == "recompute":

@@ -22,7 +22,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from image2sphere.reporting.metrics_table import format_metrics_table
-from image2sphere.training.checkpoint import AtomicCheckpointIO, load_checkpoint
+from image2sphere.training.checkpoint import AtomicCheckpointIO, check_resumed_weights, checkpoint_file, load_checkpoint
 from image2sphere.training.cluster import (
     ddp_children_run_this_job,
     is_secondary_rank,
@@ -39,9 +39,11 @@ from image2sphere.training.stop import (
     close_decisions,
     decide_or_raise,
     exit_after_stop,
+    exit_at_once,
     handle_signals,
     requested,
     requeue_signals,
+    stopped_at_once,
     use_flag_only_signals,
 )
 from image2sphere.training.terminal import quiet_known_noise, report
@@ -89,13 +91,11 @@ def _train(cfg: DictConfig) -> dict[str, float]:
     after a line that says how to resume.
     """
     ckpt_path = cfg.get("ckpt_path")
+    resumed = None
     if ckpt_path is not None:
-        if not Path(ckpt_path).is_file():
-            raise FileNotFoundError(
-                f"ckpt_path={ckpt_path} does not exist; pass the checkpoint of an earlier run, "
-                "e.g. ckpt_path=logs/train/runs/<run>/checkpoints/last.ckpt"
-            )
-        cfg = resume_config(cfg, load_checkpoint(ckpt_path), str(ckpt_path))
+        checkpoint_file(ckpt_path)  # not a file (e.g. a run's directory): one line, with the checkpoints found
+        resumed = load_checkpoint(ckpt_path)
+        cfg = resume_config(cfg, resumed, str(ckpt_path))
     check_train_config(cfg)
     log.info(describe_run(cfg, *_hydra_choices(resumed=ckpt_path is not None)))
     output_dir = Path(cfg.paths.output_dir)
@@ -122,6 +122,9 @@ def _train(cfg: DictConfig) -> dict[str, float]:
     datamodule = instantiate(cfg.dataset)
     log.info("Instantiating model <%s> with network <%s>", cfg.model._target_, cfg.model.net._target_)
     model = instantiate(cfg.model)
+    if resumed is not None:  # weights that do not fit this network: one line now, not Lightning's at fit
+        check_resumed_weights(model, resumed, str(ckpt_path))
+        resumed = None
     if model.class_names is None:
         model.class_names = list(getattr(datamodule, "class_names", []) or []) or None
     model.run_config = OmegaConf.to_container(cfg, resolve=True)
@@ -141,11 +144,21 @@ def _train(cfg: DictConfig) -> dict[str, float]:
         fit_ckpt = requeue_checkpoint(output_dir)
         if fit_ckpt is not None:
             log.info("Requeued SLURM job %s: continuing from %s", slurm_job_id(), fit_ckpt)
+    checkpoints = output_dir / "checkpoints"
+    made_checkpoints = not checkpoints.exists()  # a folder of this run's, which a stop at once may leave empty
     try:
         return _fit_and_test(cfg, trainer, model, datamodule, loggers, output_dir, ckpt_path, fit_ckpt)
     except (TrainingInterrupted, StopRequested) as e:
         finish_loggers(loggers)
         _exit_interrupted(e, output_dir, ckpt_path)
+    except (KeyboardInterrupt, SystemExit) as e:  # a second Ctrl-C: one line, exit status 130 (training/stop.py)
+        if not stopped_at_once(e):
+            raise
+        finish_loggers(loggers)  # before the line, so that it is the last one
+        where = "in the test" if trainer.testing else f"in epoch {trainer.current_epoch} (step {trainer.global_step})"
+        last = checkpoints / "last.ckpt"
+        exit_at_once(where, str(last) if last.is_file() else None, ckpt_path,
+                     str(checkpoints) if made_checkpoints else None)  # fmt: skip
 
 
 def _fit_and_test(cfg, trainer, model, datamodule, loggers, output_dir, ckpt_path, fit_ckpt) -> dict[str, float]:

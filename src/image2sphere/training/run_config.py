@@ -20,12 +20,19 @@ holds the resolved config of the run that wrote it (``run_config``), and
 
 "Changes explicitly" is decided by Hydra itself: the config is composed once with the command
 line's overrides and once without, and the keys whose values differ are the explicit ones.
+
+Another model cannot continue a checkpoint (:func:`check_same_model`): a ``model=`` option other than the
+one the checkpoint's run was trained with (its run directory's ``.hydra/`` says which), or a command line
+that changes the class of the model or of its network, is refused before anything is written. A change of
+the network's size (``model.net.*``) is refused once the network is built, when the checkpoint's weights do
+not fit it (:func:`~image2sphere.training.checkpoint.check_resumed_weights`).
 """
 
 from __future__ import annotations
 
 import copy
 import logging
+from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
@@ -36,12 +43,14 @@ from image2sphere.data.workers import check_num_workers
 __all__ = [
     "RENAMED_KEYS",
     "check_choice",
+    "check_same_model",
     "check_eval_config",
     "check_predict_config",
     "check_train_config",
     "deprecated_name",
     "describe_run",
     "resume_config",
+    "stored_model_choice",
 ]
 
 log = logging.getLogger(__name__)
@@ -268,16 +277,72 @@ def _merge(stored: Any, current: Any, prefix: str, explicit: set[str]) -> Any:
     return out
 
 
+def _class_name(model: Any, key: str) -> str:
+    """The class name of ``model``'s ``key`` (``net._target_``), ``?`` when it has none."""
+    node = model
+    for part in key.split("."):
+        node = node.get(part) if isinstance(node, dict) else None
+    return str(node).rpartition(".")[2] if node else "?"
+
+
+def stored_model_choice(ckpt_path: str | Path) -> str | None:
+    """The ``model=`` option of the run that wrote the checkpoint at ``ckpt_path``, as its run directory's
+    ``.hydra/`` says (followed back through a resume of a resume, :mod:`image2sphere.reporting.runs`);
+    ``None`` when no run directory holds the checkpoint (a copied file) or it says nothing."""
+    from image2sphere.reporting.runs import _checkpoint_run_dir, _read_setting
+
+    run_dir = _checkpoint_run_dir(Path(ckpt_path).resolve())
+    if run_dir is None:
+        return None
+    try:
+        choice = _read_setting(run_dir).choices.get("model")
+    except Exception:  # noqa: BLE001 - an unreadable .hydra/: the choice is unknown
+        return None
+    return str(choice) if choice else None
+
+
+def check_same_model(stored: dict, current: dict, overrides: list[str], explicit: set[str], ckpt_path: str) -> None:
+    """Refuse to resume the checkpoint at ``ckpt_path`` (its stored config ``stored``) with another model than the
+    one it holds: a ``model=`` option on the command line (``overrides``) other than the option of the run that
+    wrote it (:func:`stored_model_choice`), or, where that option is unknown, a command line that changes the
+    class of the model or of its network (``explicit``: the keys the command line changes) to another than the
+    checkpoint's. ``current``: the config the command line composes. Other changes of the network (its size) are
+    refused when its weights do not fit (:func:`~image2sphere.training.checkpoint.check_resumed_weights`)."""
+    given = next((o.split("=", 1)[1] for o in overrides if override_key(o) == "model" and "=" in o), None)
+    fix = "to resume it, or leave out ckpt_path to train a new model"
+    known = stored_model_choice(ckpt_path)
+    if given is not None and known is not None:
+        if given != known:
+            raise ValueError(
+                f"ckpt_path={ckpt_path} holds a model={known} run; model={given} cannot continue it: "
+                f"drop model={given} {fix}"
+            )
+        return
+    if not explicit & {"model._target_", "model.net._target_"}:
+        return
+    old_model, new_model = stored.get("model") or {}, current.get("model") or {}
+    for key in ("net._target_", "_target_"):
+        before, after = _class_name(old_model, key), _class_name(new_model, key)
+        if before != after:
+            held = f"a model={known} run" if known else f"a run of {before} (model.{key})"
+            change = f"model={given}" if given is not None else "the overrides that change the model"
+            raise ValueError(
+                f"ckpt_path={ckpt_path} holds {held}; {change} ({after}) cannot continue it: drop {change} {fix}"
+            )
+
+
 def resume_config(cfg: DictConfig, ckpt: dict, ckpt_path: str) -> DictConfig:
     """The config a run resumed from ``ckpt`` runs with (see the module docstring); logs what came from where."""
     stored = ckpt["run_config"]
     current = OmegaConf.to_container(cfg, resolve=True)
     command = command_line()
     explicit: set[str] = set()
+    overrides: list[str] = []
     if command is not None:
         overrides = [o for o in command[1] if override_key(o) != "ckpt_path"]
         if overrides:
             explicit = explicit_override_keys(command[0], overrides)
+    check_same_model(stored, current, overrides, explicit, ckpt_path)
     result = copy.deepcopy(current)
     taken: list[str] = []
     for key in FROM_CHECKPOINT:

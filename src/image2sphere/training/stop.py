@@ -4,7 +4,9 @@ process and on every rank of a DDP run.
 The rule
 --------
 * A signal handler only **records** the request (:func:`requested`); it never runs a collective, writes
-  a file or raises (except a second Ctrl-C, which stops at once as Python does by default). A process
+  a file or raises (except a second Ctrl-C, which stops at once as Python does by default: ``python -m
+  src.train`` then ends with one line that says where it stopped and which checkpoint to resume from, and
+  exit status 130, :func:`exit_at_once`). A process
   keeps the strongest request it received (the requeue signal over SIGTERM over Ctrl-C), the same order
   in which the ranks combine theirs, so one rank that received two signals decides as two ranks that
   received one each.
@@ -70,6 +72,7 @@ import re
 import select
 import signal
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterable, Iterator
@@ -93,11 +96,13 @@ __all__ = [
     "close_decisions",
     "decide",
     "exit_after_stop",
+    "exit_at_once",
     "open_decisions",
     "handle_signals",
     "requeue_job",
     "requeue_signals",
     "requested",
+    "stopped_at_once",
     "use_flag_only_signals",
 ]
 
@@ -339,6 +344,55 @@ def exit_after_stop(signum: int, message: str) -> NoReturn:
         raise SystemExit(0)
     log.warning(message)
     raise SystemExit(128 + int(signum))
+
+
+def stopped_at_once(exc: BaseException) -> bool:
+    """Whether ``exc`` ends the run because of a second Ctrl-C: the ``KeyboardInterrupt`` the handler raised,
+    or the ``SystemExit(1)`` by which Lightning ends the process after catching it (``trainer.fit``/``test``
+    tear down and exit on a ``KeyboardInterrupt``, lightning/pytorch/trainer/call.py)."""
+    if _REQUEST.sigints < 2:
+        return False
+    seen: set[int] = set()
+    node: BaseException | None = exc
+    while node is not None and id(node) not in seen:  # the exception and the one it was raised while handling
+        if isinstance(node, KeyboardInterrupt):
+            return True
+        if not isinstance(node, SystemExit):
+            return False
+        seen.add(id(node))
+        node = node.__context__
+    return False
+
+
+def exit_at_once(where: str, checkpoint: str | None, resumed_from: str | None,
+                 empty_dir: str | None = None) -> NoReturn:  # fmt: skip
+    """End the process after a second Ctrl-C (:func:`stopped_at_once`), which stopped it wherever it was without
+    saving: one line on stderr, printed last, says where (``where``: ``in epoch 3 (step 120)``), that nothing more
+    was saved and which checkpoint to resume from (``checkpoint``: the run's last one, ``None`` when it wrote
+    none; ``resumed_from``: the checkpoint the run itself started from); exit status 130 (128 + SIGINT), as a
+    shell gives a program that Ctrl-C ended. ``empty_dir``: the run's checkpoint folder, removed when it is
+    empty (a write that the second Ctrl-C cut short removes its temporary file). The other ranks of a
+    distributed run exit as Lightning has them exit, without a line."""
+    if empty_dir is not None:
+        with contextlib.suppress(OSError):  # not empty, or already gone: left as it is
+            os.rmdir(empty_dir)
+    if is_secondary_rank():
+        raise SystemExit(1)
+    if checkpoint is not None:
+        kept = f"the last checkpoint is {checkpoint} (resume with python -m src.train ckpt_path={checkpoint})"
+    elif resumed_from is not None:
+        kept = (
+            f"this run wrote no checkpoint (resume again from {resumed_from}: python -m src.train "
+            f"ckpt_path={resumed_from})"
+        )
+    else:
+        kept = "this run wrote no checkpoint"
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    print(f"Stopped at once by a second Ctrl-C {where}: nothing more was saved; {kept}", file=sys.stderr,
+          flush=True)  # fmt: skip
+    raise SystemExit(128 + int(signal.SIGINT))
 
 
 # ---------------------------------------------------------------------------------------------- deciding

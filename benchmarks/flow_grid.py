@@ -46,8 +46,10 @@ from hydra.utils import instantiate
 from image2sphere.so3.rotations import random_rotations
 from image2sphere.training import register_resolvers
 
-level, eval_level, spread_level, batch = map(int, sys.argv[1:5])
-conf = sys.argv[5]
+level, eval_level, spread_level, batch, threads = map(int, sys.argv[1:6])
+conf = sys.argv[6]
+if threads:
+    torch.set_num_threads(threads)
 register_resolvers()
 with initialize_config_dir(version_base="1.3", config_dir=conf):
     flow_cfg = compose("train", overrides=["model=rotation_flow", "dataset.image_size=32", "model.net.start=random",
@@ -61,16 +63,16 @@ out = {"file": image2sphere.__file__}
 with torch.inference_mode():
     for name, net in (("flow", module.net), ("ipdf", ipdf)):
         dist = net.output_distribution(net(images))
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         lse = dist.grid_logsumexp_and_max(level)[0]
-        out[f"{name} sweep"] = time.perf_counter() - t0
+        out[f"{name} sweep"], out[f"{name} sweep cpu"] = time.perf_counter() - t0, time.process_time() - c0
         out[f"{name} lse"] = lse.tolist()
     test_batch = {"image": images, "class_index": torch.zeros(batch, dtype=torch.long), "index": torch.arange(batch),
                   "rotations": random_rotations(batch, generator=torch.Generator().manual_seed(1))[:, None],
                   "mask": torch.ones(batch, 1, dtype=torch.bool)}
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     result = module._evaluate(test_batch, eval_level, spread_level, calibration=True)
-    out["flow test batch"] = time.perf_counter() - t0
+    out["flow test batch"], out["flow test batch cpu"] = time.perf_counter() - t0, time.process_time() - c0
     out["flow spread"] = result["spread"].tolist()
 print("RESULT " + json.dumps(out))
 """
@@ -79,7 +81,7 @@ print("RESULT " + json.dumps(out))
 def measure(src: Path, args) -> dict:
     env = {**os.environ, "PYTHONPATH": str(src), "WANDB_SILENT": "true"}
     argv = [sys.executable, "-c", MEASURE, str(args.level), str(args.eval_level), str(args.spread_level),
-            str(args.batch), str(REPO / "conf")]  # fmt: skip
+            str(args.batch), str(args.threads), str(REPO / "conf")]  # fmt: skip
     proc = subprocess.run(argv, capture_output=True, text=True, env=env, cwd=REPO)
     lines = [line for line in proc.stdout.splitlines() if line.startswith("RESULT ")]
     if proc.returncode != 0 or not lines:
@@ -95,13 +97,15 @@ def main() -> None:
     p.add_argument("--spread-level", type=int, default=4, help="the test batch's spread level")
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--repeats", type=int, default=2)
+    p.add_argument("--threads", type=int, default=0, help="torch's threads in the measurements (0: its default)")
     args = p.parse_args()
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     from _machine import cpu_model, load_line  # benchmarks/_machine.py, beside this script
 
     print(f"device: {cpu_model()}; {load_line('at the start')}")
+    threads = args.threads or "torch's default"
     print(f"batch {args.batch}; sweep at level {args.level}; test batch at level {args.eval_level}, spread at "
-          f"level {args.spread_level}; baseline {args.baseline}\n")  # fmt: skip
+          f"level {args.spread_level}; baseline {args.baseline}; threads: {threads}\n")  # fmt: skip
     with tempfile.TemporaryDirectory() as tmp:
         archive = subprocess.run(["git", "archive", args.baseline, "src"], cwd=REPO, capture_output=True)
         if archive.returncode != 0:
@@ -114,13 +118,15 @@ def main() -> None:
             for name, src in trees.items():
                 runs[name].append(measure(src, args))
     keys = ("flow sweep", "ipdf sweep", "flow test batch")
-    median = {name: {k: statistics.median(r[k] for r in rs) for k in keys} for name, rs in runs.items()}
-    print(f"{'':18s}{'baseline':>12s}{'this checkout':>16s}{'speed-up':>10s}")
-    for k in keys:
-        a, b = median["baseline"][k], median["this checkout"][k]
-        print(f"{k:18s}{a:11.2f}s{b:15.2f}s{a / b:9.1f}x")
+    for clock, suffix in (("wall clock", ""), ("CPU (process)", " cpu")):
+        median = {name: {k: statistics.median(r[k + suffix] for r in rs) for k in keys} for name, rs in runs.items()}
+        print(f"{clock:18s}{'baseline':>12s}{'this checkout':>16s}{'speed-up':>10s}")
+        for k in keys:
+            a, b = median["baseline"][k], median["this checkout"][k]
+            print(f"{k:18s}{a:11.2f}s{b:15.2f}s{a / b:9.1f}x")
+        print()
     first, now = runs["baseline"][0], runs["this checkout"][0]
-    print(f"\nbaseline imported from {first['file']}, this checkout from {now['file']}")
+    print(f"baseline imported from {first['file']}, this checkout from {now['file']}")
     # the same numbers, not only faster: the values agree to float32 rounding
     for k in ("flow lse", "ipdf lse", "flow spread"):
         diff = max(abs(x - y) for x, y in zip(first[k], now[k], strict=True))

@@ -279,24 +279,128 @@ def test_set_losses_refuse_a_padded_first_rotation_and_take_it_reordered():
         assert torch.isfinite(set_loss(padded.flip(1), mask.flip(1))).all(), name
 
 
+def _reference_layer(layer, R: torch.Tensor, z: torch.Tensor, inverse: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """One layer on rotation matrices ``R (B, K, 3, 3)`` as the module docstring writes it, independent of the
+    layers' quaternion arithmetic: a coupling moves column ``j`` by the disk automorphism in 3-D, turns it
+    about ``c_i`` (a cross product), renormalises and completes the frame by a cross product; the affine layer
+    maps the quaternion of each matrix. (The formulas of the flow before it was evaluated in quaternions.)"""
+    from image2sphere.nn.so3_flow import W_MAX
+    from image2sphere.so3.rotations import matrix_to_quaternion, quaternion_to_matrix
+
+    if isinstance(layer, QuaternionAffine):
+        A = layer.to_matrix(z).reshape(-1, 4, 4) * (-1 if inverse else 1)
+        Wq = (torch.linalg.matrix_exp(A)[:, None] @ matrix_to_quaternion(R, "wxyz")[..., None])[..., 0]  # [B, K, 4]
+        log_det = A.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None] - 4 * Wq.norm(dim=-1).log()
+        return quaternion_to_matrix(Wq, "wxyz"), log_det
+    axis, x = R[..., layer.i], R[..., layer.j]  # [B, K, 3]
+    h = torch.relu(layer.from_condition(z)[:, None] + axis @ layer.from_column.weight.T)
+    for module in layer.layers:
+        h = module(h)
+    out = layer.out(h)
+    v = out[..., :3] - (out[..., :3] * axis).sum(-1, keepdim=True) * axis  # onto the circle's plane
+    w = v * (W_MAX / (1 + v.norm(dim=-1, keepdim=True)))
+    phi = out[..., 3:]
+
+    def disk(x, w):  # h_w(x) and log |h_w'(x)|
+        scale = (1 - (w * w).sum(-1, keepdim=True)) / ((x - w) ** 2).sum(-1, keepdim=True)
+        return scale * (x - w) - w, scale[..., 0].log()
+
+    def turn(x, angle):
+        return angle.cos() * x + angle.sin() * torch.linalg.cross(axis, x, dim=-1)
+
+    if inverse:
+        y, log_det = disk(turn(x, -phi), -w)
+    else:
+        y, log_det = disk(x, w)
+        y = turn(y, phi)
+    y = torch.nn.functional.normalize(y - (y * axis).sum(-1, keepdim=True) * axis, dim=-1)
+    columns = [axis] * 3
+    columns[layer.j], columns[layer.k] = y, torch.linalg.cross(axis, y, dim=-1)
+    return torch.stack(columns, dim=-1), log_det
+
+
+def _reference_log_prob(flow: SO3Flow, z: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
+    R = R.expand(len(z), *R.shape[-3:])  # [B, K, 3, 3]
+    total = torch.zeros(R.shape[:2], dtype=R.dtype)
+    for layer in reversed(flow.layers):
+        R, log_det = _reference_layer(layer, R, z, inverse=True)
+        total = total + log_det
+    return total + LOG_UNIFORM_DENSITY
+
+
+def _reference_transform(flow: SO3Flow, z: torch.Tensor, R: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    total = torch.zeros(R.shape[:2], dtype=R.dtype)
+    for layer in flow.layers:
+        R, log_det = _reference_layer(layer, R, z, inverse=False)
+        total = total + log_det
+    return R, total
+
+
+def test_flow_evaluated_in_quaternions_equals_the_matrix_form_in_float64(monkeypatch):
+    """Quick (about 0.3 s). At random parameters (a block, two hidden layers per conditioner, 3 images), float64: the
+    log density, the forward map and its log-determinant equal the matrix-form reference (the layers as the
+    module docstring writes them) to 1e-10, with autograd (also every gradient) and without it, where the
+    conditioners run on pieces of the rotations: whole images, several images per piece with a narrower last
+    piece, and parts of one image (pieces made small here), and through a grid sweep whose calls do not divide
+    the grid. Checkpoints keep their keys: the state dict holds the parameters only."""
+    from image2sphere.nn import so3_flow
+
+    torch.manual_seed(13)
+    flow = SO3Flow(5, blocks=1, hidden=16, depth=3).double()
+    with torch.no_grad():
+        for p in flow.parameters():
+            p.normal_(0, 0.3)
+    z = torch.randn(3, 5, dtype=torch.float64, requires_grad=True)
+    assert set(flow.state_dict()) == {name for name, _ in flow.named_parameters()}
+    # pieces of about 70 columns whatever the thread count (16 activations a column)
+    monkeypatch.setattr(so3_flow, "PIECE_ELEMENTS", 16 * 70 // torch.get_num_threads())
+    shared, own = haar_rotations(30, seed=31), haar_rotations(3 * 30, seed=32).reshape(3, 30, 3, 3)
+    for R in (shared, own):  # 30 per image: a piece of 2 images, then one of 1
+        expected = _reference_log_prob(flow, z, R)
+        value = flow.log_prob(z, R)
+        torch.testing.assert_close(value, expected, rtol=0, atol=1e-10)
+        if R is shared:  # (matrix_exp's backward in float64 costs 0.1 s a call)
+            grads = torch.autograd.grad(value.sum(), [z, *flow.parameters()])
+            expected_grads = torch.autograd.grad(expected.sum(), [z, *flow.parameters()])
+            for got, want in zip(grads, expected_grads, strict=True):
+                torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-9)
+        with torch.no_grad():
+            torch.testing.assert_close(flow.log_prob(z, R), expected.detach(), rtol=0, atol=1e-10)
+    R0 = haar_rotations(3 * 100, seed=33).reshape(3, 100, 3, 3)  # 100 per image: parts of an image
+    with torch.no_grad():
+        expected = _reference_transform(flow, z, R0)
+        T, log_det = flow.transform(z, R0)
+    torch.testing.assert_close(T, expected[0], rtol=0, atol=1e-10)
+    torch.testing.assert_close(log_det, expected[1], rtol=0, atol=1e-10)
+    T, log_det = flow.transform(z, R0[:, :5])  # with autograd
+    torch.testing.assert_close(T.detach(), expected[0][:, :5], rtol=0, atol=1e-10)
+    torch.testing.assert_close(log_det.detach(), expected[1][:, :5], rtol=0, atol=1e-10)
+    # a sweep of 25 rotations a call: the grid's 72 = 2 x 25 + 22, so the last call is a shorter one
+    dist = FlowDistribution(z.detach(), flow.log_prob, flow.sample, width=13981)
+    assert dist.points_per_call == 25
+    with torch.no_grad():
+        swept = dist.grid_log_density(0)
+        expected = _reference_log_prob(flow, z.detach(), so3_healpix_grid(0, dtype=torch.float64))
+    torch.testing.assert_close(swept, expected, rtol=0, atol=1e-10)
+
+
 def test_flow_without_gradients_gives_the_values_of_the_autograd_path_and_keeps_no_alias():
-    """Quick. Without autograd a coupling writes its hidden activations into buffers kept between calls
-    (the grid sweep's path); its ``w`` and ``phi`` equal the autograd path's, a later call with other
-    rotations or another shape leaves earlier results as they were, and a whole flow's density agrees."""
+    """Quick. Without autograd the flow writes its products and activations into buffers kept between calls
+    (the grid sweep's path); its values equal the autograd path's, and a later call with other rotations or
+    another shape leaves earlier results as they were."""
     flow, z = _random_flow(0.3, seed=4, blocks=2)
-    layer = flow.layers[0]
-    axes = [haar_rotations(n, seed=seed)[..., 0].expand(3, n, 3).contiguous() for n, seed in ((7, 1), (7, 2), (4, 3))]
+    inputs = [haar_rotations(7, seed=1), haar_rotations(7, seed=2), haar_rotations(4, seed=3)]
     with torch.no_grad():
-        kept = [layer.parameters_at(z, a) for a in axes]  # the second call reuses the first's buffers
-    for a, (w, phi) in zip(axes, kept, strict=True):
-        w_ref, phi_ref = layer.parameters_at(z, a)  # with gradients: fresh tensors
-        torch.testing.assert_close(w, w_ref.detach(), rtol=0, atol=1e-12)
-        torch.testing.assert_close(phi, phi_ref.detach(), rtol=0, atol=1e-12)
-    assert not torch.equal(kept[0][1], kept[1][1])  # different rotations, different results, both kept
-    R = haar_rotations(9, seed=11)
-    with torch.no_grad():
-        fast = flow.log_prob(z, R)
-    torch.testing.assert_close(fast, flow.log_prob(z, R).detach(), rtol=0, atol=1e-10)
+        kept = [flow.log_prob(z, R) for R in inputs]  # the second call reuses the first's buffers
+        moved = [flow.transform(z, R.expand(3, -1, -1, -1)) for R in inputs]
+    for R, value, (T, log_det) in zip(inputs, kept, moved, strict=True):
+        torch.testing.assert_close(value, flow.log_prob(z, R).detach(), rtol=0, atol=1e-10)
+        T_ref, log_det_ref = flow.transform(z, R.expand(3, -1, -1, -1))
+        torch.testing.assert_close(T, T_ref.detach(), rtol=0, atol=1e-10)
+        torch.testing.assert_close(log_det, log_det_ref.detach(), rtol=0, atol=1e-10)
+    assert not torch.equal(kept[0], kept[1])  # different rotations, different results, both kept
+    with torch.no_grad():  # no rotations: no values
+        assert flow.log_prob(z, inputs[0][:0]).shape == (3, 0)
     # a shape first seen in the test loop's inference mode, then a prediction under no_grad, then again
     R = haar_rotations(10, seed=12)
     reference = flow.log_prob(z, R).detach()

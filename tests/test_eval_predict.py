@@ -48,6 +48,7 @@ def test_eval_scores_every_test_image_and_reproduces_the_training_metrics(traine
     assert metrics["eval_grid_level"] == 3
     assert "unfinished" not in metrics and "UNFINISHED" not in proc.stdout  # the run trained its 1 epoch
     assert "Evaluating on the grid of level 3 (the level its run was tested at" in proc.stdout + proc.stderr
+    assert "The test of 6 images on the grid of level 3 will take about" in proc.stdout  # 4 + 2, not 2 x 4
     trained_metrics = read_metrics(run)
     assert metrics["n_images"] == trained_metrics["n_images"] == 6
     # the calibration's tie-break is drawn per image, so the same images give the same coverage in any batch

@@ -38,6 +38,7 @@ from image2sphere.training.checkpoint import (
 )
 from image2sphere.training.cluster import ddp_children_run_this_job
 from image2sphere.training.pipeline import finish_loggers, fit_recalibration_on, instantiate_list
+from image2sphere.training.progress import EpochProgressBar
 from image2sphere.training.run_config import check_eval_config, command_line, override_key
 from image2sphere.training.stop import (
     DEFAULT_GRACE_S,
@@ -164,7 +165,9 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
         )
     module.class_names = names or trained
     loggers = instantiate_list(cfg.get("logger"), "logger")
-    trainer: pl.Trainer = instantiate(cfg.trainer, logger=loggers or False, callbacks=[], enable_checkpointing=False)
+    # the training run's progress bar: it shows how far a long test batch's grid sweep is
+    trainer: pl.Trainer = instantiate(cfg.trainer, logger=loggers or False, callbacks=[EpochProgressBar()],
+                                      enable_checkpointing=False)  # fmt: skip
     if cfg.get("batchnorm_statistics", "stored") == "recompute":
         _recompute_batchnorm_statistics(module, datamodule, ckpt, cfg.get("batchnorm_batches"), trainer)
     use_flag_only_signals(trainer)  # a signal stops every rank after the same test batch (training/stop.py)

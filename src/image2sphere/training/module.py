@@ -380,8 +380,12 @@ class PoseEstimationModule(pl.LightningModule):
         loader = loader[0] if isinstance(loader, (list, tuple)) else loader
         batch_size = getattr(loader, "batch_size", None)
         if batch_size and math.isfinite(batches):  # this process's share: what it will have to score
+            n_images = int(batches) * batch_size
+            dataset = getattr(loader, "dataset", None)
+            if hasattr(dataset, "__len__"):  # the last batch may be partial
+                n_images = min(n_images, -(-len(dataset) // max(1, trainer.world_size)))
             level, spread_level = self.hparams.eval_grid_level, self.hparams.spread_grid_level
-            announce_test_cost(self, int(batches) * batch_size, level, spread_level, "eval_grid_level")
+            announce_test_cost(self, n_images, level, spread_level, "eval_grid_level")
 
     def on_test_epoch_start(self) -> None:
         self.skipped_images.pop("test", None)

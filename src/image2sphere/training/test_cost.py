@@ -13,6 +13,7 @@ estimate, as a warning with the way to make it cheaper when it exceeds :data:`LO
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
@@ -36,13 +37,15 @@ def _points(level: int | None) -> int:
 
 
 def _blank_batch(module, image_size: int | tuple[int, int], device: torch.device) -> dict[str, torch.Tensor]:
-    """One grey image with the identity as its only ground truth, in the layout of a test batch."""
+    """One grey image with the identity as its only ground truth, in the layout of a test batch and in the
+    dtype of the module's weights (``trainer.precision=64`` makes them float64)."""
     height, width = (image_size, image_size) if isinstance(image_size, int) else tuple(image_size)
+    dtype = next((p.dtype for p in module.parameters() if p.is_floating_point()), torch.float32)
     return {
-        "image": torch.zeros(1, 3, height, width, device=device),
+        "image": torch.zeros(1, 3, height, width, device=device, dtype=dtype),
         "class_index": torch.zeros(1, dtype=torch.long, device=device),
         "index": torch.zeros(1, dtype=torch.long, device=device),
-        "rotations": torch.eye(3, device=device)[None, None],
+        "rotations": torch.eye(3, device=device, dtype=dtype)[None, None],
         "mask": torch.ones(1, 1, dtype=torch.bool, device=device),
     }
 
@@ -92,7 +95,18 @@ def format_duration(seconds: float) -> str:
 def announce_test_cost(module, n_images: int, level: int, spread_level: int | None, key: str) -> float | None:
     """Log the estimated time of the test (see the module docstring); ``key`` is the setting that lowers
     the grid level (``eval_grid_level``). Returns the estimate (``None``: no estimate)."""
-    cost = probe_cost(module) if n_images > 0 else None
+    if n_images <= 0:
+        return None
+    trainer = getattr(module, "_trainer", None)
+    plugin = getattr(trainer, "precision_plugin", None) if trainer is not None else None
+    if str(getattr(trainer, "precision", "32-true")) not in ("32-true", "32", "64-true", "64"):
+        return None  # mixed precision: the probe would not run as the test does (not estimated yet)
+    try:  # in the test's context (trainer.precision=64: float64 by default), as the test will run
+        with plugin.test_step_context() if plugin is not None else contextlib.nullcontext():
+            cost = probe_cost(module)
+    except Exception as e:  # an estimate must never stop a test
+        log.debug("no estimate of the test's time: %r", e)
+        return None
     if cost is None:
         return None
     seconds = estimate_test_seconds(cost, n_images, level, spread_level)

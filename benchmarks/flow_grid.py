@@ -11,14 +11,30 @@ Two measurements, each in a fresh process per source tree (so both trees are imp
    with the recalibration pairs, the exact density and the spread), at ``--eval-level`` with the spread at
    ``--spread-level``: the scenario of a user's ``python -m src.eval`` on a flow checkpoint.
 
-The two trees take turns, ``--repeats`` times; the medians and their ratios are printed. The earlier tree is
-``git archive <--baseline>`` of this repository's ``src/`` in a temporary directory (on ``PYTHONPATH``, which
-the editable install then yields to). The default baseline is the revision before the flow's grid evaluation
-was made faster.
+The two trees take turns, ``--repeats`` times; the medians and their ratios are printed, of the wall-clock
+time and of the process's CPU time. With ``--threads 1`` the CPU time is the work done, however busy the
+machine; with more threads it also counts threads spinning while they wait for each other, and on a machine
+whose CPUs other processes share, a tree that runs many short parallel steps (the flow here) waits far more
+than one that runs few long ones (the baseline), so the default's ratios there say little. The earlier tree
+is ``git archive <--baseline>`` of this repository's ``src/`` in a temporary directory (on ``PYTHONPATH``,
+which the editable install then yields to). The default baseline is the revision before the flow's grid
+evaluation was made faster.
+
+Measured on this project's 2-core CPU with the defaults (batch 16; this tree against 17e4829), the values the
+same to float32 rounding (log normalisers to 1.9e-06, spreads to 1.2e-04 degrees):
+
+* nearly idle (load average 0.5 at the start), torch's 2 threads, two runs: the test batch in 4.65 s and
+  4.54 s against 58.1 s (12.5 and 12.8 times as fast), the level-3 sweep 7.7 and 8.1 times as fast (IPDF's,
+  not changed since the first speed-up, 1.7 times);
+* one thread (``--threads 1``): nearly idle, the test batch 6.95 s against 76.2 s (11.0 times), the sweep 6.1
+  times; at a load average of about 4, 10.9 s against 119.5 s (10.9 times);
+* torch's 2 threads at a load average of about 4 (another process running the test suite): 2.8 to 4.6 times,
+  the flow's test batch taking 52 s to 97 s.
 
 Usage::
 
-    python benchmarks/flow_grid.py                                   # about 3 minutes on 2 cores
+    python benchmarks/flow_grid.py                 # about 3 minutes on 2 idle cores (torch's 2 threads)
+    python benchmarks/flow_grid.py --threads 1     # steadier where other processes share the CPUs
     python benchmarks/flow_grid.py --level 2 --eval-level 2 --spread-level 2 --repeats 1   # smoke
 """
 

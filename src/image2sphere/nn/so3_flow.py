@@ -61,11 +61,12 @@ mathematics above is unchanged; only its arithmetic is:
 * The columns are quadratic in ``q``: with the 16 products ``q_a q_b`` (one outer product), the nine
   entries of ``R`` are one small matrix product (:data:`_ROTATION_FORM`), which gives the conditioner's
   input ``c_i`` and the coordinates ``v . c_j``, ``v . c_k`` of its output ``v`` in the circle's plane.
-* Without autograd (a grid sweep) the products and activations are written into buffers kept between calls
-  and shared by the layers of one flow (:class:`_Buffers`). The conditioners run on pieces of the rotations
-  that stay in a core's cache from one layer to the next; the first layer adds each image's condition term
-  through a one-hot code of the images, and each later bias is the last column of its layer's matrix, the
-  activations having a row of ones below them: each layer is one matrix product and one rectification.
+* Without autograd (a grid sweep) the products, activations and each layer's quaternions are written into
+  buffers kept between calls and shared by the layers of one flow (:class:`_Buffers`), and the elementwise
+  steps overwrite their temporaries. The conditioners run on pieces of the rotations that stay in a core's
+  cache from one layer to the next; the first layer adds each image's condition term through a one-hot code
+  of the images, and each later bias is the last column of its layer's matrix, the activations having a row
+  of ones below them: each layer is one matrix product and one rectification.
 """
 
 from __future__ import annotations
@@ -84,14 +85,14 @@ from image2sphere.so3.rotations import matrix_to_quaternion, quaternion_to_matri
 __all__ = ["MobiusCoupling", "QuaternionAffine", "RotationFlow", "SO3Flow", "mobius_circle"]
 
 #: activations per piece of a conditioner's layers and per thread on a CPU (512 KiB of float32, in a core's
-#: cache from one layer to the next): 1.72 ms per coupling of 16 x 1024 rotations on one thread of this
-#: project's CPU, against 1.81 ms at 1 << 18 and 1.89 ms at 1 << 19
+#: cache from one layer to the next). Measured when it was chosen, on one thread of this project's CPU: a
+#: coupling of 16 x 1024 rotations in 1.72 ms, against 1.81 ms at 1 << 18 and 1.89 ms at 1 << 19
 PIECE_ELEMENTS = 1 << 17
 #: the width a grid sweep on a CPU divides its activation budget by (rotations per call: 4096 of 16 images,
 #: :class:`~image2sphere.distributions.implicit.ImplicitDistribution`): the conditioners' activations are in
 #: pieces anyway, and larger calls spread the layers' fixed costs and give each elementwise step enough
-#: numbers for two threads. A level-3 sweep of 16 images on two idle cores of a Xeon: 0.72 s, against 0.77 s
-#: at 32 and 0.90 s at the hidden width, 64. Elsewhere: the hidden width.
+#: numbers for two threads. Measured when it was chosen, a level-3 sweep of 16 images on two idle cores of a
+#: Xeon: 0.72 s, against 0.77 s at 32 and 0.90 s at the hidden width, 64. Elsewhere: the hidden width.
 CPU_CALL_WIDTH = 16
 #: ``|w| <= W_MAX``: the densest a single Möbius layer can make a circle is ``(1 + W_MAX) / (1 - W_MAX)``
 W_MAX = 0.99
@@ -173,7 +174,8 @@ class _Buffers:
     entries, one row per image of a piece, 1 in that image's columns (a one-hot code: the first layer's
     product adds each image's condition term by it). :attr:`pieces` holds each piece's views of the buffers,
     made once (slicing costs a few microseconds a view, and a sweep slices the same views thousands of
-    times)."""
+    times). The layers write their quaternions into two buffers in turn (:meth:`output_for`), the affine
+    layers' products into a third."""
 
     def __init__(self, B: int, K: int, hidden: int, like: torch.Tensor):
         most = B * K if like.device.type != "cpu" else max(1, PIECE_ELEMENTS * torch.get_num_threads() // hidden)
@@ -212,6 +214,52 @@ class _Buffers:
 def _with_bias(linear: nn.Linear) -> torch.Tensor:
     """``[W | b]`` ``(out, in + 1)``: the layer as one product with an input that ends in a row of ones."""
     return torch.cat([linear.weight, linear.bias[:, None]], dim=1)
+
+
+def _half_turn(
+    v_j: torch.Tensor, v_k: torch.Tensor, phi: torch.Tensor, inverse: bool
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``cos(a/2)``, ``sin(a/2)`` of a coupling's turn and its ``log |det J|`` (module docstring), from the
+    conditioner's output: ``v``'s coordinates ``v_j, v_k`` in the circle's plane and the angle ``phi``, each
+    ``(N,)``."""
+    norm = torch.linalg.vector_norm(torch.stack([v_j, v_k]), dim=0)  # its gradient at 0 (the identity start) is 0
+    scale = W_MAX / (1 + norm)
+    w_j, w_k = v_j * scale, v_k * scale
+    half = 0.5 * phi
+    cos, sin = half.cos(), half.sin()
+    if inverse:  # u = exp(-i phi/2) + w exp(i phi/2)
+        re = torch.addcmul(cos * (1 + w_j), w_k, sin, value=-1)
+        im = torch.addcmul(sin * (w_j - 1), w_k, cos)
+    else:  # u = exp(i phi/2) (1 - w)
+        re = torch.addcmul(cos * (1 - w_j), w_k, sin)
+        im = torch.addcmul(sin * (1 - w_j), w_k, cos, value=-1)
+    u_sq = torch.addcmul(re * re, im, im)  # |u|^2 >= (1 - |w|)^2 > 0
+    log_det = ((1 - (norm * scale).square()) / u_sq).log()  # log(1 - |w|^2) - log |u|^2
+    inv = u_sq.rsqrt()
+    return re * inv, im * inv, log_det
+
+
+def _half_turn_in_place(
+    v_j: torch.Tensor, v_k: torch.Tensor, phi: torch.Tensor, inverse: bool
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`_half_turn` without autograd, in fewer new tensors (each a pass over memory): ``v_j`` and
+    ``v_k`` are overwritten."""
+    norm = (v_j * v_j).addcmul_(v_k, v_k).sqrt_()
+    scale = norm.add(1).reciprocal_().mul_(W_MAX)
+    one_minus_w_sq = norm.mul_(scale).square_().neg_().add_(1)  # 1 - |w|^2
+    w_j, w_k = v_j.mul_(scale), v_k.mul_(scale)
+    cos = (0.5 * phi).cos_()
+    sin = (0.5 * phi).sin_()
+    if inverse:
+        re = (w_j + 1).mul_(cos).addcmul_(w_k, sin, value=-1)
+        im = w_j.sub_(1).mul_(sin).addcmul_(w_k, cos)
+    else:
+        re = (1 - w_j).mul_(cos).addcmul_(w_k, sin)
+        im = w_j.neg_().add_(1).mul_(sin).addcmul_(w_k, cos, value=-1)
+    u_sq = (re * re).addcmul_(im, im)
+    log_det = one_minus_w_sq.div_(u_sq).log_()
+    inv = u_sq.rsqrt_()
+    return re.mul_(inv), im.mul_(inv), log_det
 
 
 class MobiusCoupling(nn.Module):
@@ -261,35 +309,19 @@ class MobiusCoupling(nn.Module):
         q = q.reshape(4, B * K)  # [4, N]: image-major columns
         if buffers is None:
             products = (q[:, None] * q[None]).view(16, -1)  # q_a q_b
-        else:  # a kept buffer: a fresh megabyte per call costs about as much as filling it
+        else:  # a kept buffer: a fresh megabyte costs an allocation and, often, page faults
             products = buffers.products
             torch.mul(q[:, None], q[None], out=products.view(4, 4, -1))
         out, columns = self._conditioner(products, z, B, K, buffers)  # [4, N] (v, phi), [9 (+ images), N]
         v, phi = out[:3], out[3]
-        # v's coordinates along c_j and c_k; w = v_plane W_MAX / (1 + |v_plane|) in the circle's plane
+        # v's coordinates along c_j and c_k, then w = v_plane W_MAX / (1 + |v_plane|) in the circle's plane
         v_j = (columns[0] * v[0]).addcmul_(columns[1], v[1]).addcmul_(columns[2], v[2])  # [N]
         v_k = (columns[3] * v[0]).addcmul_(columns[4], v[1]).addcmul_(columns[5], v[2])
-        if buffers is None:  # the norm's gradient at 0 (the identity start) is 0, sqrt's would be NaN
-            norm = torch.linalg.vector_norm(torch.stack([v_j, v_k]), dim=0)
-        else:
-            norm = torch.addcmul(v_j * v_j, v_k, v_k).sqrt_()
-        scale = W_MAX / (1 + norm)
-        w_j, w_k = v_j * scale, v_k * scale
-        half = 0.5 * phi
-        cos, sin = half.cos(), half.sin()
-        if inverse:  # u = exp(-i phi/2) + w exp(i phi/2)
-            re = torch.addcmul(cos * (1 + w_j), w_k, sin, value=-1)
-            im = torch.addcmul(sin * (w_j - 1), w_k, cos)
-        else:  # u = exp(i phi/2) (1 - w)
-            re = torch.addcmul(cos * (1 - w_j), w_k, sin)
-            im = torch.addcmul(sin * (1 - w_j), w_k, cos, value=-1)
-        u_sq = torch.addcmul(re * re, im, im)  # |u|^2 >= (1 - |w|)^2 > 0
-        log_det = ((1 - (norm * scale).square()) / u_sq).log()  # log(1 - |w|^2) - log |u|^2
-        inv = u_sq.rsqrt()
-        cos_half, sin_half = re * inv, im * inv  # of the turn's angle a
+        half_turn = _half_turn if buffers is None else _half_turn_in_place
+        cos_half, sin_half, log_det = half_turn(v_j, v_k, phi, inverse)  # of the turn's angle a
         if buffers is None:  # q (cos a/2 + sin a/2 e_i)
             q = torch.addcmul(q * cos_half, torch.mm(self._times_axis.to(q.dtype), q), sin_half)
-        else:  # the same into a kept buffer (fresh megabytes cost page faults), q e_i read as signed rows of q
+        else:  # the same into a kept buffer, q e_i read as signed rows of q (a product with 4 rows is slow)
             new = torch.mul(q, cos_half, out=buffers.output_for(q))
             for row, (column, sign) in enumerate(self._turned_rows):
                 new[row].addcmul_(q[column], sin_half, value=sign)
@@ -323,8 +355,12 @@ class MobiusCoupling(nn.Module):
         columns, out = buffers.columns, buffers.out
         torch.mm(form, products, out=columns[:9])
         weights = [_with_bias(layer) for layer in (*linears, self.out)]  # [out, in + 1]
+        per_image = torch.cat([self.from_column.weight.expand(len(z), -1, -1), condition[:, :, None]], dim=2)
         for image, images, x, activations, piece_out in buffers.pieces:
-            first = torch.cat([self.from_column.weight, condition[image : image + images].T], dim=1)  # [H, 3 + m]
+            if images == 1:
+                first = per_image[image]  # [H, 4]
+            else:
+                first = torch.cat([self.from_column.weight, condition[image : image + images].T], dim=1)  # [H, 3 + m]
             h, rows = activations[0]
             torch.mm(first, x, out=rows).relu_()  # the row of ones below stays
             for index, weight in enumerate(weights[:-1], 1):

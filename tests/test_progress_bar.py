@@ -25,6 +25,7 @@ from torch import nn
 from torch.utils.data import DataLoader, TensorDataset
 
 from conftest import REPO, run_train
+from image2sphere import batch_progress as batch_progress_hook
 from image2sphere.testing.preemption import SignalAt
 from image2sphere.training import progress, stop
 from image2sphere.training.checkpoint import AtomicCheckpointIO, batches_done_in_epoch
@@ -42,7 +43,7 @@ class _Tiny(pl.LightningModule):
         self.active_in_training: list = []
 
     def training_step(self, batch, batch_idx):
-        self.active_in_training.append(progress._active)
+        self.active_in_training.append(batch_progress_hook.reporter())
         loss = self.layer(batch[0]).pow(2).mean()
         self.log("train/loss", loss, prog_bar=True, on_step=True, on_epoch=True)
         return loss
@@ -168,7 +169,7 @@ def test_fast_dev_run_and_a_switched_off_bar(tmp_path, capsys):
     trainer = _trainer(tmp_path, [quiet], max_epochs=1)
     trainer.fit(module, _data())
     trainer.test(module, _data(), verbose=False)
-    assert capsys.readouterr().out == "" and progress._active is None
+    assert capsys.readouterr().out == "" and batch_progress_hook.reporter() is None
 
 
 def test_batch_progress_notes_inside_a_test_batch_are_throttled_and_wiped(tmp_path, capsys):
@@ -178,7 +179,7 @@ def test_batch_progress_notes_inside_a_test_batch_are_throttled_and_wiped(tmp_pa
     notes = [line for line in lines if "grid" in line]
     assert [_bar(line)[3] for line in notes[:3]] == ["grid 1/3 chunks", "grid 2/3 chunks", "grid 3/3 chunks"]
     assert _bar(lines[-1])[::3] == ("Testing DataLoader 0", "")  # wiped at the batch's end
-    assert progress._active is None
+    assert batch_progress_hook.reporter() is None
 
     slow = EpochProgressBar(refresh_rate=10)  # 0.5 s between notes: a batch this short shows none
     _trainer(tmp_path, [slow]).test(_Tiny(notes=3), _data(), verbose=False)
@@ -186,7 +187,7 @@ def test_batch_progress_notes_inside_a_test_batch_are_throttled_and_wiped(tmp_pa
 
 
 def test_batch_progress_without_a_bar_does_nothing(capsys):
-    assert progress._active is None
+    assert batch_progress_hook.reporter() is None
     start = time.perf_counter()
     for k in range(100_000):
         batch_progress(k, 100_000, "grid")

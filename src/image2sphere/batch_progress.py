@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-__all__ = ["report", "set_reporter"]
+__all__ = ["report", "reporter", "set_reporter"]
 
 Reporter = Callable[[int, int, str, str], None]
 _reporter: Reporter | None = None
@@ -22,10 +22,16 @@ _reporter: Reporter | None = None
 
 def report(done: int, total: int, what: str, unit: str = "") -> None:
     """``done`` of ``total`` steps of ``what`` (e.g. ``report(12, 40, "grid 5", "chunks")``) to the reporter
-    installed now, if any."""
+    installed now, if any. A plain module attribute rather than a ContextVar: a sweep may score its chunks on
+    a thread of its own, which would not see a ContextVar set on the main thread."""
     reporter = _reporter
     if reporter is not None:
         reporter(done, total, what, unit)
+
+
+def reporter() -> Reporter | None:
+    """The reporter installed now (``None``: none)."""
+    return _reporter
 
 
 def set_reporter(reporter: Reporter | None) -> Reporter | None:

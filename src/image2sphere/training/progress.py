@@ -33,14 +33,9 @@ import lightning.pytorch as pl
 from lightning.pytorch.callbacks import TQDMProgressBar
 from lightning.pytorch.callbacks.progress.tqdm_progress import Tqdm, convert_inf
 
-from image2sphere.batch_progress import set_reporter
+from image2sphere import batch_progress as _hook
 
 __all__ = ["EpochProgressBar", "batch_progress"]
-
-# The bar of the evaluation batch in progress on this process, set by its on_*_batch_start and cleared at
-# the batch's end. A plain module attribute rather than a ContextVar: a sweep may score its chunks on a
-# thread of its own, which would not see a ContextVar set on the main thread.
-_active: EpochProgressBar | None = None
 
 
 def batch_progress(done: int, total: int, what: str, unit: str = "") -> None:
@@ -49,11 +44,11 @@ def batch_progress(done: int, total: int, what: str, unit: str = "") -> None:
 
     For work inside one validation, test or predict batch long enough that its bar would seem stuck.
     Without a bar drawing such a batch (training, another rank, the bar switched off, no trainer at all)
-    it does nothing.
+    it does nothing. The same as :func:`image2sphere.batch_progress.report`, through which the grid sweeps
+    report: the bar of the batch in progress installs itself there (:meth:`EpochProgressBar.batch_progress`)
+    and removes itself at the batch's end.
     """
-    bar = _active
-    if bar is not None:
-        bar.batch_progress(done, total, what, unit)
+    _hook.report(done, total, what, unit)
 
 
 class EpochProgressBar(TQDMProgressBar):
@@ -152,21 +147,17 @@ class EpochProgressBar(TQDMProgressBar):
         bar.set_postfix_str(self._batch_note, refresh=True)
 
     def _start_batch(self, bar: Any) -> None:
-        global _active
         if bar is None or bar.disable:
             return
         self._batch_bar, self._batch_shown_t, self._batch_note = bar, time.monotonic(), ""
-        _active = self
-        set_reporter(batch_progress)  # the grid sweeps report through image2sphere.batch_progress
+        _hook.set_reporter(self.batch_progress)  # what batch_progress() and the grid sweeps report to
 
     def _end_batch(self) -> None:
         """Forget the batch's bar; a note :meth:`batch_progress` drew is wiped, so that it never stands
         next to the next batch's count."""
-        global _active
         bar, self._batch_bar = self._batch_bar, None
-        if _active is self:
-            _active = None
-            set_reporter(None)
+        if _hook.reporter() == self.batch_progress:  # this bar's (a bound method equals its twin)
+            _hook.set_reporter(None)
         if bar is not None and self._batch_note:
             self._batch_note = ""
             bar.set_postfix_str("", refresh=True)

@@ -41,6 +41,8 @@ from typing import Any
 
 import yaml
 
+from image2sphere.loop_progress import batches_done_in_epoch, epoch_resumed_in, has_loop_state
+
 __all__ = [
     "LAST_CHECKPOINT",
     "OWN_GROUPS",
@@ -321,12 +323,8 @@ def _epochs_done(checkpoint: Path) -> tuple[int, int, bool]:
 
     state = torch.load(checkpoint, map_location="cpu", weights_only=True, mmap=True)
     steps = int(state.get("global_step", 0) or 0)
-    loop = (state.get("loops") or {}).get("fit_loop") or {}
-    progress = (loop.get("epoch_progress") or {}).get("current") or {}
-    if "processed" in progress:
-        batches = loop.get("epoch_loop.batch_progress") or {}
-        mid_epoch = not batches.get("is_last_batch", True) and int((batches.get("current") or {}).get("processed", 0))
-        return int(progress["processed"]), steps, bool(mid_epoch)
+    if has_loop_state(state):
+        return epoch_resumed_in(state), steps, batches_done_in_epoch(state) > 0
     return int(state.get("epoch", -1)) + 1, steps, False  # a checkpoint without loop state: its epoch's end
 
 

@@ -53,6 +53,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 from omegaconf import OmegaConf
 
+from image2sphere.loop_progress import batches_done_in_epoch, epoch_resumed_in
 from image2sphere.recalibration import Recalibration
 
 __all__ = [
@@ -162,26 +163,6 @@ class EpochCheckpoint(ModelCheckpoint):
             epoch = int(checkpoint.get("epoch", 0))
             log.info("resuming epoch %d after its first %d training batches", epoch, done)
             datamodule.resume_within_epoch(epoch, done)
-
-
-def batches_done_in_epoch(checkpoint: dict) -> int:
-    """Training batches of the checkpoint's current epoch that were done (0 for a checkpoint at an epoch's end)."""
-    try:
-        progress = checkpoint["loops"]["fit_loop"]["epoch_loop.batch_progress"]
-        # a checkpoint written at a batch's end has processed that batch but not yet marked it completed
-        done = int(progress["current"]["processed"])
-    except (KeyError, TypeError, ValueError):
-        return 0
-    return 0 if progress.get("is_last_batch", True) else done
-
-
-def epoch_resumed_in(checkpoint: dict) -> int:
-    """The training epoch a run resumed from ``checkpoint`` starts in: the one Lightning tells the samplers
-    (its count of epochs processed; a checkpoint written at an epoch's end starts the next one)."""
-    try:
-        return int(checkpoint["loops"]["fit_loop"]["epoch_progress"]["current"]["processed"])
-    except (KeyError, TypeError, ValueError):
-        return int(checkpoint.get("epoch", 0) or 0)
 
 
 # ---------------------------------------------------------------------------------------------- reading

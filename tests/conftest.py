@@ -178,6 +178,16 @@ def run_train(args: list[str], data_dir: Path, log_dir: Path, check: bool = True
     return run_module(train_command(args, data_dir, log_dir), check=check)
 
 
+def caught(function, *args) -> BaseException:
+    """What ``function(*args)`` raised (any exception, also ``SystemExit`` and ``KeyboardInterrupt``); a test
+    failure when it raised nothing."""
+    try:
+        function(*args)
+    except BaseException as e:  # noqa: BLE001 (the test looks at whatever ended it)
+        return e
+    raise AssertionError("nothing raised")
+
+
 def read_metrics(run_dir: Path) -> dict:
     return json.loads((run_dir / "metrics.json").read_text())
 

@@ -16,7 +16,7 @@ from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from conftest import ENV, run_module, run_train
+from conftest import ENV, caught, run_module, run_train
 from image2sphere.training import entry
 from image2sphere.training.entry import discard_failed_start, refusal
 
@@ -73,41 +73,31 @@ def _raiser(module: str, code: str):
     return namespace["f"]
 
 
-def _caught(function, *args) -> BaseException:
-    try:
-        function(*args)
-    except BaseException as e:  # noqa: BLE001 (the test looks at whatever it raised)
-        return e
-    raise AssertionError("nothing raised")
-
-
 def test_a_refusal_is_a_value_or_file_error_of_the_projects_code_before_any_loop():
     from image2sphere.checks import check_int
 
-    assert (
-        refusal(_caught(check_int, "dataset.batch_size", 0, 1)) == "dataset.batch_size must be an integer >= 1, got 0"
-    )
+    assert refusal(caught(check_int, "dataset.batch_size", 0, 1)) == "dataset.batch_size must be an integer >= 1, got 0"
     ours_file = _raiser("image2sphere.data.fake", "raise FileNotFoundError('data/x not found: get it from y')")
-    assert refusal(_caught(ours_file)) == "data/x not found: get it from y"
+    assert refusal(caught(ours_file)) == "data/x not found: get it from y"
     # raised while Hydra instantiated a node (a data module that finds no dataset): the reader's message
     node = {"_target_": "image2sphere.checks.check_int", "name": "k", "value": -1}
-    assert refusal(_caught(instantiate, node)) == "k must be an integer >= 0, got -1"
+    assert refusal(caught(instantiate, node)) == "k must be an integer >= 0, got -1"
     missing = OmegaConf.create({"image": "???"})
-    assert refusal(_caught(lambda: missing.image)) == "image is required: give it on the command line (image=...)"
+    assert refusal(caught(lambda: missing.image)) == "image is required: give it on the command line (image=...)"
 
 
 def test_a_bug_keeps_its_traceback():
     # a ValueError of another library (torch, numpy...), reached from our code
     library = _raiser("numpy.fake", "raise ValueError('operands could not be broadcast')")
-    assert refusal(_caught(_raiser("image2sphere.nn.fake", "pass"), library)) is None
+    assert refusal(caught(_raiser("image2sphere.nn.fake", "pass"), library)) is None
     # any other type raised by our code
-    assert refusal(_caught(_raiser("image2sphere.nn.fake", "raise RuntimeError('shapes')"))) is None
-    assert refusal(_caught(_raiser("image2sphere.nn.fake", "raise TypeError('x')"))) is None
+    assert refusal(caught(_raiser("image2sphere.nn.fake", "raise RuntimeError('shapes')"))) is None
+    assert refusal(caught(_raiser("image2sphere.nn.fake", "raise TypeError('x')"))) is None
     # our ValueError inside a training loop: the run had started, more likely a bug than a setting
     ours = _raiser("image2sphere.training.fake", "raise ValueError('NaN in batch 3')")
     loop = _raiser("lightning.pytorch.loops.fake", "pass")
-    assert refusal(_caught(loop, ours)) is None
-    assert refusal(_caught(ours)) == "NaN in batch 3"  # the same error outside a loop is a refusal
+    assert refusal(caught(loop, ours)) is None
+    assert refusal(caught(ours)) == "NaN in batch 3"  # the same error outside a loop is a refusal
 
 
 # ------------------------------------------------------------------------------------- what is removed
@@ -171,7 +161,7 @@ def test_nothing_is_removed_where_anything_else_was_written(job_dir, written):
 
 def test_nothing_is_removed_on_another_rank_or_once_a_loop_ran(job_dir, monkeypatch):
     run = job_dir(RunMode.RUN)
-    in_loop = _caught(_raiser("lightning.pytorch.loops.fake", "pass"), lambda: (_ for _ in ()).throw(REFUSED))
+    in_loop = caught(_raiser("lightning.pytorch.loops.fake", "pass"), lambda: (_ for _ in ()).throw(REFUSED))
     assert not discard_failed_start(in_loop) and (run / ".hydra" / "config.yaml").is_file()
     monkeypatch.setenv("LOCAL_RANK", "1")  # a DDP rank Lightning started: rank 0 owns the directory
     assert not discard_failed_start(REFUSED) and (run / "train.log").is_file()

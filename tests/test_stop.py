@@ -21,6 +21,7 @@ import torch
 from torch import nn
 from torch.utils.data import DataLoader, TensorDataset
 
+from conftest import caught
 from image2sphere.testing.commands import process_group
 from image2sphere.testing.preemption import MOMENT_PHASES, SignalAt, group_alive, schedule
 from image2sphere.training import stop
@@ -58,8 +59,8 @@ def test_the_second_ctrl_c_stops_at_once():
 def test_after_a_second_ctrl_c_one_line_says_what_was_kept_and_the_status_is_130(tmp_path, capsys):
     with stop.handle_signals():
         _deliver(signal.SIGINT)
-        interrupt = _caught_base(lambda: _deliver(signal.SIGINT))
-        lightning = _caught_base(_exit_as_lightning_does, interrupt)  # its sys.exit(1) while handling it
+        interrupt = caught(lambda: _deliver(signal.SIGINT))
+        lightning = caught(_exit_as_lightning_does, interrupt)  # its sys.exit(1) while handling it
         assert stop.stopped_at_once(interrupt) and stop.stopped_at_once(lightning)
         assert not stop.stopped_at_once(SystemExit(1))  # an exit without a Ctrl-C behind it
         empty, kept = tmp_path / "empty" / "checkpoints", tmp_path / "kept" / "checkpoints"
@@ -68,7 +69,7 @@ def test_after_a_second_ctrl_c_one_line_says_what_was_kept_and_the_status_is_130
         (kept / "last.ckpt").write_bytes(b"x")
         for checkpoint, resumed, folder in ((None, None, empty), (None, "a/last.ckpt", None), (kept / "last.ckpt", None,
                                             kept)):  # fmt: skip
-            ended = _caught_base(stop.exit_at_once, "in epoch 1 (step 3)", checkpoint and str(checkpoint), resumed,
+            ended = caught(stop.exit_at_once, "in epoch 1 (step 3)", checkpoint and str(checkpoint), resumed,
                                  folder and str(folder))  # fmt: skip
             assert isinstance(ended, SystemExit) and ended.code == 130
     assert not empty.exists() and (kept / "last.ckpt").is_file()  # only an empty folder is removed
@@ -82,14 +83,6 @@ def test_after_a_second_ctrl_c_one_line_says_what_was_kept_and_the_status_is_130
         start + f"the last checkpoint is {kept / 'last.ckpt'} (resume with python -m src.train "
         f"ckpt_path={kept / 'last.ckpt'})",
     ]
-
-
-def _caught_base(function, *args) -> BaseException:
-    try:
-        function(*args)
-    except BaseException as e:  # noqa: BLE001 (the test looks at what ended it)
-        return e
-    raise AssertionError("nothing raised")
 
 
 def _exit_as_lightning_does(interrupt: BaseException) -> None:

@@ -131,18 +131,21 @@ def job_dir(tmp_path):
         handler.close()
 
 
-REFUSED = ValueError("lmax must be an integer >= 0, got -1")
+def _refused() -> ValueError:
+    """A refusal as the config check raises it; a new one each time, as raising one gives it a traceback that
+    :func:`loops_started` reads (one shared instance, raised inside a loop by one test, failed the next)."""
+    return ValueError("lmax must be an integer >= 0, got -1")
 
 
 @pytest.mark.parametrize("mode", [RunMode.RUN, RunMode.MULTIRUN])
 def test_a_failed_start_removes_its_own_directory(job_dir, mode):
     run = job_dir(mode)
-    assert discard_failed_start(REFUSED) and not run.exists()
+    assert discard_failed_start(_refused()) and not run.exists()
 
 
 def test_a_run_directory_that_existed_keeps_the_folder(job_dir):
     run = job_dir(RunMode.RUN, new=False)  # e.g. an empty hydra.run.dir made by the user
-    assert not discard_failed_start(REFUSED)
+    assert not discard_failed_start(_refused())
     assert run.is_dir() and list(run.iterdir()) == []
 
 
@@ -154,17 +157,17 @@ def test_nothing_is_removed_where_anything_else_was_written(job_dir, written):
     (run / written).parent.mkdir(parents=True, exist_ok=True)
     (run / written).write_text("x")
     before = sorted(p.relative_to(run) for p in run.rglob("*"))
-    assert not discard_failed_start(REFUSED)
+    assert not discard_failed_start(_refused())
     assert sorted(p.relative_to(run) for p in run.rglob("*")) == before
     assert "a line of the job's log" in (run / "train.log").read_text()
 
 
 def test_nothing_is_removed_on_another_rank_or_once_a_loop_ran(job_dir, monkeypatch):
     run = job_dir(RunMode.RUN)
-    in_loop = caught(_raiser("lightning.pytorch.loops.fake", "pass"), lambda: (_ for _ in ()).throw(REFUSED))
+    in_loop = caught(_raiser("lightning.pytorch.loops.fake", "pass"), lambda: (_ for _ in ()).throw(_refused()))
     assert not discard_failed_start(in_loop) and (run / ".hydra" / "config.yaml").is_file()
     monkeypatch.setenv("LOCAL_RANK", "1")  # a DDP rank Lightning started: rank 0 owns the directory
-    assert not discard_failed_start(REFUSED) and (run / "train.log").is_file()
+    assert not discard_failed_start(_refused()) and (run / "train.log").is_file()
 
 
 # ------------------------------------------------------------------------------------- a multirun

@@ -84,6 +84,33 @@ def test_options_of_the_configs_own_groups_compose_nothing(monkeypatch):
     assert command_line_problem("train.yaml", []) is None
 
 
+def test_keys_are_judged_on_the_config_of_the_groups_composed_once_per_process(monkeypatch):
+    """Key overrides are checked on the config of the group overrides alone, composed once for every command
+    line with the same groups; only a key that config lacks is judged on the whole command line's config."""
+    composed, real = [], command_line._compose
+
+    def compose(loader, name, overrides):
+        composed.append(list(overrides))
+        return real(loader, name, overrides)
+
+    monkeypatch.setattr(command_line, "_compose", compose)
+    monkeypatch.setattr(command_line, "_GROUP_CONFIGS", {})
+    for seed in range(3):
+        argv = ["model=ipdf", f"seed={seed}", "trainer.max_epochs=2", f"hydra.run.dir=runs/{seed}", "+my_note=1"]
+        assert command_line_problem("train.yaml", argv) is None
+    assert composed == [["model=ipdf"]]
+    assert command_line_problem("train.yaml", ["model=ipdf", "+lmx=3"]) == LMAX  # the kept config, as above
+    assert composed == [["model=ipdf"]]
+    line = (
+        "model.net.sphere_channels is not a config key of python -m src.train (every key: python -m src.train "
+        "--cfg job)"
+    )
+    assert command_line_problem("train.yaml", ["model=ipdf", "model.net.sphere_channels=16"]) == line
+    assert composed[1:] == [["model=ipdf", "model.net.sphere_channels=16"]]  # a key the groups' config lacks
+    assert command_line_problem("train.yaml", ["model=i2s", "seed=1"]) is None
+    assert composed[-1] == ["model=i2s"]  # other groups: their own config
+
+
 def test_the_entry_point_prints_one_line_and_writes_nothing_and_hydra_full_error_keeps_hydras_report(tmp_path):
     """In-process runs of the real entry points: exit status 1, one line on stderr, no log directory made (the
     check comes before Hydra makes the run's directory); a multirun launches no job."""

@@ -21,11 +21,13 @@ status 1 and before any run directory exists:
   ``encoder=...``): they rebuild the network their checkpoint holds;
 * **a group that the config does not have** (``dataset=symsol1`` in ``src.predict``), naming its groups.
 
-Group options are checked against the config repository alone. Keys need the composed config: the config
-is composed once, with the command line's overrides (a sweep's first value standing for the sweep), and
-only when some override sets or removes a key or picks a group that is not in the primary config's own
-defaults list; a command line of group options from that list, or none at all, composes nothing. When that
-composition fails, the config of the group overrides alone tells which key is unknown.
+Group options are checked against the config repository alone. Keys need a composed config, and only when
+some override sets or removes a key or picks a group that is not in the primary config's own defaults list
+(a command line of group options from that list, or none at all, composes nothing). Which keys a config has
+follows from its groups, not from the values a command line sets: the config of the group overrides alone
+(a sweep's first value standing for the sweep) is composed once per process and set of groups, and a key it
+has is accepted. Only a key it lacks is judged on the config composed with the whole command line, where a
+value may have made it (``model.net={...}``); when that composition fails, the key is unknown.
 
 Not checked (Hydra behaves as before): with ``HYDRA_FULL_ERROR=1``; with ``--help``, ``--hydra-help``,
 ``--info``, ``--shell-completion``, ``--config-path`` or ``--experimental-rerun``; a sweep over a glob or an
@@ -242,27 +244,39 @@ def _key_problem(overrides: list, loader, config_name: str, multirun: bool, comm
         not (o.is_add() or o.is_delete()) and o.key_or_group in own_groups for o in groups
     ):
         return None  # options of the primary config's own groups, checked above: nothing to compose
+    added_paths = [o.key_or_group for o in added]
+
+    def under_added(override) -> bool:  # set under a key this command line adds
+        return any(override.key_or_group == p or override.key_or_group.startswith(p + ".") for p in added_paths)
+
+    keys = [o for o in overrides if o not in groups and o not in added and not under_added(o)]
+    # The keys a config has follow from its groups, not from the values set: the config of the group overrides
+    # alone (composed once per process and set of groups) judges every key that it has. Only a key it lacks
+    # (unknown, or made by a value, as model.net={...}) needs the config of the whole command line.
+    structure = _compose_groups(loader, config_name, [_first_value(o) for o in groups])
+    if structure is not None and all(_unknown_key(o, structure, command, SUGGEST_CUTOFF, True) is None for o in keys):
+        return _added_key_problem(added, structure, command)
     composed = [_first_value(o) for o in overrides if o not in added]
     base = _compose(loader, config_name, composed)
     if base is None:  # some override does not fit: the config of the group overrides alone says which
-        base = _compose(loader, config_name, [_first_value(o) for o in groups])
+        base = structure
         if base is None:
             return _group_not_in_defaults(groups, loader, config_name, command)
         if multirun or "MULTIRUN" in str(base.hydra.get("mode")):
             if _sweeper(base) != _BASIC_SWEEPER:
                 return None  # its jobs are composed with overrides of the sweeper's own
-        added_paths = [o.key_or_group for o in added]
-        for override in overrides:
-            if override in groups or override in added:
-                continue
-            if any(override.key_or_group == p or override.key_or_group.startswith(p + ".") for p in added_paths):
-                continue  # set under a key this command line adds
+        for override in keys:
             problem = _unknown_key(override, base, command, SUGGEST_CUTOFF, always=True)
             if problem:
                 return problem
         return None
+    return _added_key_problem(added, base, command)
+
+
+def _added_key_problem(added: list, cfg, command: str) -> str | None:
+    """The line for a key added with ``+`` that looks like a misspelling of a key ``cfg`` has."""
     for override in added:
-        problem = _unknown_key(override, base, command, ADDED_KEY_CUTOFF, always=False)
+        problem = _unknown_key(override, cfg, command, ADDED_KEY_CUTOFF, always=False)
         if problem:
             return problem
     return None
@@ -291,6 +305,23 @@ def _primary_groups(repo, config_name: str) -> set[str]:
     result = repo.load_config(config_name)
     defaults = getattr(result, "defaults_list", None) or []
     return {str(d.group) for d in defaults if getattr(d, "group", None) and not getattr(d, "override", False)}
+
+
+# the configs of group overrides alone, by search path, config and overrides: a process that checks many command
+# lines (a test session, a notebook) composes each set of groups once
+_GROUP_CONFIGS: dict[tuple, Any] = {}
+_GROUP_CONFIGS_KEPT = 32
+
+
+def _compose_groups(loader, config_name: str, overrides: list[str]):
+    """:func:`_compose` of group overrides, kept per process (read only: the caller never edits it)."""
+    search_path = tuple((e.provider, e.path) for e in loader.get_search_path().get_path())
+    key = (search_path, config_name, tuple(overrides))
+    if key not in _GROUP_CONFIGS:
+        if len(_GROUP_CONFIGS) >= _GROUP_CONFIGS_KEPT:
+            _GROUP_CONFIGS.pop(next(iter(_GROUP_CONFIGS)))
+        _GROUP_CONFIGS[key] = _compose(loader, config_name, overrides)
+    return _GROUP_CONFIGS[key]
 
 
 def _compose(loader, config_name: str, overrides: list[str]):

@@ -109,52 +109,39 @@ _share_the_cores()
 
 
 def _parse_each_config_file_once() -> None:
-    """Hydra parses every YAML file of the defaults tree again at each compose (a CLI run composes three
-    times: the command-line check, Hydra's mode, the run), and the suite composes about a thousand times: a
-    third of the quick tier's CPU time was composition, a quarter of that the parsing. Here each file's parse
-    is kept per test process, keyed by the file's bytes (a file a test rewrites is parsed again), and every
-    compose gets its own deep copy, as Hydra edits what it loaded. That holds for the project's files
-    (``FileConfigSource``) and for the configs Hydra and its plugins ship in their packages
-    (``ImportlibResourcesConfigSource``: ``hydra/job_logging``, the launchers, ...). A config source class
-    this Hydra version does not have is left as it is."""
+    """Hydra parses every YAML file of the defaults tree again at each compose (a CLI run composes twice:
+    once for its mode, once to run), and the suite composes about a thousand times: a third of the quick
+    tier's CPU time was composition, a quarter of that the parsing. Here each file's parse is kept per
+    test process, keyed by the file's bytes (a file a test rewrites is parsed again), and every compose
+    gets its own deep copy, as Hydra edits what it loaded. Without Hydra's ``FileConfigSource`` (another
+    Hydra version) nothing changes."""
     import copy
     import dataclasses
-    from importlib import resources
 
     from hydra.core.plugins import Plugins
 
-    Plugins.instance()  # Hydra's plugin scan loads its config sources' modules anew: patch the classes it uses
-    parsed = {}
+    Plugins.instance()  # Hydra's plugin scan loads its config sources' modules anew: patch the class it uses
+    FileConfigSource = getattr(
+        sys.modules.get("hydra._internal.core_plugins.file_config_source"), "FileConfigSource", None
+    )
+    if FileConfigSource is None:
+        return
+    parse, parsed = FileConfigSource.load_config, {}
 
-    def cached(parse, read_bytes):
-        def load_config(self, config_path: str):
-            try:
-                key = (type(self).__name__, self.provider, self.path, config_path, read_bytes(self, config_path))
-            except (OSError, TypeError, ValueError):
-                return parse(self, config_path)  # Hydra's own error
-            if key not in parsed:
-                parsed[key] = parse(self, config_path)
-            result = parsed[key]
-            return dataclasses.replace(result, config=copy.deepcopy(result.config), header=dict(result.header))
+    def load_config(self, config_path: str):
+        file = os.path.realpath(os.path.join(self.path, self._normalize_file_name(config_path)))
+        try:
+            with open(file, "rb") as f:
+                key = (self.provider, file, f.read())
+        except OSError:
+            return parse(self, config_path)  # Hydra's own error
+        if key not in parsed:
+            parsed[key] = parse(self, config_path)
+        result = parsed[key]
+        return dataclasses.replace(result, config=copy.deepcopy(result.config), header=dict(result.header))
 
-        load_config.uncached = parse
-        return load_config
-
-    def file_bytes(source, config_path):
-        with open(os.path.join(source.path, source._normalize_file_name(config_path)), "rb") as f:
-            return f.read()
-
-    def resource_bytes(source, config_path):
-        return resources.files(source.path).joinpath(source._normalize_file_name(config_path)).read_bytes()
-
-    for module, name, read_bytes in (
-        ("hydra._internal.core_plugins.file_config_source", "FileConfigSource", file_bytes),
-        ("hydra._internal.core_plugins.importlib_resources_config_source", "ImportlibResourcesConfigSource",
-         resource_bytes),
-    ):  # fmt: skip
-        source = getattr(sys.modules.get(module), name, None)
-        if source is not None and not hasattr(source.load_config, "uncached"):
-            source.load_config = cached(source.load_config, read_bytes)
+    load_config.uncached = parse
+    FileConfigSource.load_config = load_config
 
 
 _parse_each_config_file_once()

@@ -92,7 +92,9 @@ def test_the_wandb_logger_leaves_out_the_argument_wandb_warns_about(tmp_path):
     theirs = LightningWandbLogger(offline=True, save_dir=str(tmp_path), project="p")
     assert "anonymous" in theirs._wandb_init and theirs._wandb_init["anonymous"] is None
     assert "anonymous" not in ours._wandb_init
-    assert {k: v for k, v in theirs._wandb_init.items() if k != "anonymous"} == ours._wandb_init
+    assert {k: v for k, v in theirs._wandb_init.items() if k != "anonymous"} == {
+        k: v for k, v in ours._wandb_init.items() if k != "settings"
+    }
     assert type(ours).__name__ == "WandbLogger"  # the project recognises the logger by its class name
     assert WandbLogger(offline=True, save_dir=str(tmp_path), anonymous=True)._wandb_init["anonymous"] == "allow"
     with mock.patch.object(wandb, "termwarn") as warn:  # wandb as installed warns for None, not for unset
@@ -101,6 +103,35 @@ def test_the_wandb_logger_leaves_out_the_argument_wandb_warns_about(tmp_path):
         warn.reset_mock()
         wandb.Settings()
         assert not any("anonymous" in str(c) for c in warn.call_args_list)
+
+
+def test_an_offline_wandb_run_ends_with_one_line_instead_of_wandbs_summary(tmp_path, capfd, monkeypatch):
+    """A real offline wandb run through the project's logger: wandb's closing sparklines and summary table are
+    gone, its start lines (where the run is saved) stay, and one line says where the run is and how to
+    upload it, naming the directory wandb wrote. An online logger and the user's own settings are left as
+    they are."""
+    import wandb
+
+    from image2sphere.training.terminal import finish_loggers
+
+    monkeypatch.delenv("WANDB_SILENT", raising=False)  # as a user runs it
+    monkeypatch.delenv("WANDB_QUIET", raising=False)
+    logger = WandbLogger(offline=True, save_dir=str(tmp_path), project="p", name="train")
+    logger.log_metrics({"test/log_likelihood": 1.5, "epoch": 1})
+    finish_loggers([logger])
+    err = capfd.readouterr().err
+    assert "Run data is saved locally in" in err
+    for gone in ("Run summary", "Run history", "test/log_likelihood", "You can sync this run"):
+        assert gone not in err, gone
+    (offline,) = (tmp_path / "wandb").glob("offline-run-*")
+    assert (
+        err.rstrip("\n").splitlines()[-1]
+        == f"wandb: offline run saved in {offline}; to upload it: wandb sync {offline}"
+    )
+    assert any(offline.glob("*.wandb"))  # the run's data: what wandb sync uploads
+    assert "settings" not in WandbLogger(offline=False, save_dir=str(tmp_path), project="p")._wandb_init
+    own = wandb.Settings(quiet=False)
+    assert WandbLogger(offline=True, save_dir=str(tmp_path), settings=own)._wandb_init["settings"] is own
 
 
 def test_report_prints_and_ends_the_job_log_with_the_text(tmp_path, capsys):

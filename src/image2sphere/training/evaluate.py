@@ -37,7 +37,7 @@ from image2sphere.training.checkpoint import (
     load_checkpoint,
 )
 from image2sphere.training.cluster import ddp_children_run_this_job
-from image2sphere.training.pipeline import finish_loggers, fit_recalibration_on, instantiate_list
+from image2sphere.training.pipeline import fit_recalibration_on, instantiate_list
 from image2sphere.training.progress import EpochProgressBar
 from image2sphere.training.run_config import check_eval_config, command_line, override_key
 from image2sphere.training.stop import (
@@ -48,7 +48,7 @@ from image2sphere.training.stop import (
     handle_signals,
     use_flag_only_signals,
 )
-from image2sphere.training.terminal import quiet_known_noise, report
+from image2sphere.training.terminal import finish_loggers, quiet_known_noise, report
 
 __all__ = ["evaluate", "recalibrated_path"]
 

@@ -46,9 +46,9 @@ from image2sphere.training.stop import (
     stopped_at_once,
     use_flag_only_signals,
 )
-from image2sphere.training.terminal import quiet_known_noise, report
+from image2sphere.training.terminal import finish_loggers, quiet_known_noise, report
 
-__all__ = ["finish_loggers", "fit_recalibration_on", "instantiate_list", "train"]
+__all__ = ["fit_recalibration_on", "instantiate_list", "train"]
 
 log = logging.getLogger(__name__)
 
@@ -312,12 +312,3 @@ def _exit_interrupted(e: TrainingInterrupted | StopRequested, output_dir: Path, 
         if resumed_from is not None:
             message += f". Resume again with: python -m src.train ckpt_path={resumed_from}"
     exit_after_stop(e.signum, message)
-
-
-def finish_loggers(loggers: list) -> None:
-    """Close the run of a wandb logger (the others need nothing)."""
-    for logger in loggers:
-        if type(logger).__name__ == "WandbLogger":
-            import wandb
-
-            wandb.finish()

@@ -13,6 +13,14 @@ libraries say still shows:
   warns that "the anonymous setting has no effect" for any value other than unset: :class:`WandbLogger`
   leaves the argument out when it is ``None`` (``logger.wandb.anonymous=true`` still passes it).
 
+**wandb's closing summary.** At the end of a run wandb (0.31) prints about 25 lines: a sparkline of every
+logged value and a second table of the last values, after the project's table, which it pushes off the
+screen. An offline run (the default, ``logger.wandb.offline=true``) is therefore started with wandb's
+``quiet`` setting, which keeps the lines at the start (where the run is saved) and drops the summary and
+the closing advice to upload; :func:`finish_loggers` says that last thing in one line
+(:func:`wandb_sync_line`). An online run keeps wandb's output (its link to the run page), and
+``+logger.wandb.settings=...`` replaces the setting.
+
 **The closing report** (:func:`report`) goes to stdout, as before, and to the file handlers of the
 job's log (Hydra's ``<run dir>/<task>.log``), so that the log ends with the metrics and the run
 directory as the terminal does.
@@ -21,11 +29,12 @@ directory as the terminal does.
 from __future__ import annotations
 
 import logging
+import sys
 import warnings
 
 from lightning.pytorch.loggers import WandbLogger as _LightningWandbLogger
 
-__all__ = ["WandbLogger", "quiet_known_noise", "report"]
+__all__ = ["WandbLogger", "finish_loggers", "quiet_known_noise", "report", "wandb_sync_line"]
 
 # the loggers Lightning's rank_zero_info writes to (the fabric and the pytorch copies of the helper)
 _RANK_ZERO_LOGGERS = ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero")
@@ -65,6 +74,32 @@ class WandbLogger(_LightningWandbLogger):
         super().__init__(*args, **kwargs)
         if self._wandb_init.get("anonymous") is None:
             self._wandb_init.pop("anonymous", None)
+        if self._offline and self._wandb_init.get("settings") is None:
+            import wandb
+
+            self._wandb_init["settings"] = wandb.Settings(quiet=True)  # see the module docstring
+
+
+def wandb_sync_line(run) -> str | None:
+    """The closing line of a quiet offline wandb ``run`` (where it is saved, how to upload it); ``None`` for
+    another run, whose own output says so."""
+    settings = getattr(run, "settings", None)
+    offline = getattr(settings, "mode", None) in ("offline", "dryrun")  # wandb 0.31 records offline as dryrun
+    if not offline or not getattr(settings, "quiet", False):
+        return None
+    return f"wandb: offline run saved in {settings.sync_dir}; to upload it: wandb sync {settings.sync_dir}"
+
+
+def finish_loggers(loggers: list) -> None:
+    """Close the run of a wandb logger (the others need nothing), with :func:`wandb_sync_line` after it."""
+    for logger in loggers:
+        if type(logger).__name__ == "WandbLogger":
+            import wandb
+
+            line = wandb_sync_line(wandb.run)
+            wandb.finish()
+            if line:  # on stderr, where wandb writes its own lines
+                print(line, file=sys.stderr, flush=True)
 
 
 def _job_log_files() -> list[logging.FileHandler]:

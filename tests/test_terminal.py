@@ -93,7 +93,7 @@ def test_the_wandb_logger_leaves_out_the_argument_wandb_warns_about(tmp_path):
     assert "anonymous" in theirs._wandb_init and theirs._wandb_init["anonymous"] is None
     assert "anonymous" not in ours._wandb_init
     assert {k: v for k, v in theirs._wandb_init.items() if k != "anonymous"} == {
-        k: v for k, v in ours._wandb_init.items() if k != "settings"
+        k: v for k, v in ours._wandb_init.items() if k not in ("settings", "mode")
     }
     assert type(ours).__name__ == "WandbLogger"  # the project recognises the logger by its class name
     assert WandbLogger(offline=True, save_dir=str(tmp_path), anonymous=True)._wandb_init["anonymous"] == "allow"
@@ -116,6 +116,8 @@ def test_an_offline_wandb_run_ends_with_one_line_instead_of_wandbs_summary(tmp_p
 
     monkeypatch.delenv("WANDB_SILENT", raising=False)  # as a user runs it
     monkeypatch.delenv("WANDB_QUIET", raising=False)
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    wandb.setup()  # wandb set up before the run, as in a notebook: Lightning's WANDB_MODE alone then went online
     logger = WandbLogger(offline=True, save_dir=str(tmp_path), project="p", name="train")
     logger.log_metrics({"test/log_likelihood": 1.5, "epoch": 1})
     finish_loggers([logger])

@@ -74,10 +74,15 @@ class WandbLogger(_LightningWandbLogger):
         super().__init__(*args, **kwargs)
         if self._wandb_init.get("anonymous") is None:
             self._wandb_init.pop("anonymous", None)
-        if self._offline and self._wandb_init.get("settings") is None:
-            import wandb
+        if self._offline:
+            # Lightning (2.6.6) makes a run offline only through the WANDB_MODE variable, which wandb reads
+            # once per process: where wandb was set up before (a notebook, an earlier run in the process) the
+            # run went online and failed with "No API key configured". The mode is passed to wandb.init.
+            self._wandb_init.setdefault("mode", "offline")
+            if self._wandb_init.get("settings") is None:
+                import wandb
 
-            self._wandb_init["settings"] = wandb.Settings(quiet=True)  # see the module docstring
+                self._wandb_init["settings"] = wandb.Settings(quiet=True)  # see the module docstring
 
 
 def wandb_sync_line(run) -> str | None:

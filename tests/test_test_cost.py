@@ -73,6 +73,49 @@ def test_the_probe_recovers_fixed_and_per_point_costs_and_extrapolates(linear_cl
     assert estimate_test_seconds((fixed, per_point), 200, 5, None) == pytest.approx(200 * (0.02 + 3e-6 * points(5)))
 
 
+def test_a_small_grid_share_is_probed_on_larger_grids_and_a_moments_slowdown_warns_of_nothing(monkeypatch, caplog):
+    """A Fourier method at the default run's size: 10 ms of encoder per image and 30 ns per grid point, so levels
+    1 and 2 differ by 0.2 ms. On the default run (400 images, level 5, spread 4) a 2 ms slowdown of level 2's
+    calls read as a per-point cost ten times too high and warned "about 5 min" for a test of 31 s. The probe
+    goes up to the levels where the grid's share shows, and a long estimate is measured again before a
+    warning."""
+    fixed, per_point = 0.010, 3e-8
+    slow = {"calls": 6}  # the first probe's three calls at level 2 (one untimed) come 2 ms late
+
+    def timed(module, batch, level):
+        module._evaluate(batch, level, level, calibration=True)
+        late = 0.002 if level == 2 and slow["calls"] > 0 else 0.0
+        slow["calls"] -= level == 2
+        return fixed + per_point * 2 * points(level) + late
+
+    monkeypatch.setattr(test_cost, "_timed", timed)
+    module = _Module()
+    probed = probe_cost(module)
+    assert sorted({c[0] for c in module.calls}) == [1, 2, 3, 4]  # up to where the grid's time shows
+    assert probed == (pytest.approx(fixed, rel=1e-6), pytest.approx(per_point, rel=1e-6))
+    true = estimate_test_seconds((fixed, per_point), 400, 5, 4)  # about 84 s
+    caplog.set_level(logging.INFO, logger=test_cost.__name__)
+    slow["calls"], module.calls = 6, []
+    assert announce_test_cost(module, 400, 5, 4, "eval_grid_level") == pytest.approx(true, rel=1e-6)
+    (record,) = caplog.records
+    assert record.levelno == logging.INFO
+    # never above the test's own level: a level-3 test is probed on levels 1 to 3 and not extrapolated
+    slow["calls"], module.calls = 0, []
+    assert announce_test_cost(module, 6, 3, 2, "eval_grid_level") == pytest.approx(
+        estimate_test_seconds((fixed, per_point), 6, 3, 2), rel=1e-6
+    )
+    assert max(c[0] for c in module.calls) == 3
+
+    def stays_slow(module, batch, level):  # a test that is long: the second look confirms it
+        module._evaluate(batch, level, level, calibration=True)
+        return 0.02 + 3e-6 * 2 * points(level)
+
+    monkeypatch.setattr(test_cost, "_timed", stays_slow)
+    caplog.clear()
+    assert announce_test_cost(_Module(), 200, 5, 4, "eval_grid_level") > LONG_TEST_SECONDS
+    assert [r.levelno for r in caplog.records] == [logging.WARNING]
+
+
 def test_a_long_test_is_announced_with_the_level_that_makes_it_cheaper(linear_clock, caplog):
     module = _Module()
     caplog.set_level(logging.INFO, logger=test_cost.__name__)

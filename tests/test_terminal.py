@@ -107,9 +107,9 @@ def test_the_wandb_logger_leaves_out_the_argument_wandb_warns_about(tmp_path):
 
 def test_an_offline_wandb_run_ends_with_one_line_instead_of_wandbs_summary(tmp_path, capfd, monkeypatch):
     """A real offline wandb run through the project's logger: wandb's closing sparklines and summary table are
-    gone, its start lines (where the run is saved) stay, and one line says where the run is and how to
-    upload it, naming the directory wandb wrote. An online logger and the user's own settings are left as
-    they are."""
+    gone, and one line says where the run is and how to upload it, naming the directory wandb wrote (whether
+    wandb's own start lines show depends on how wandb was first set up in the process: not checked). An online
+    logger and the user's own settings are left as they are."""
     import wandb
 
     from image2sphere.training.terminal import finish_loggers
@@ -122,7 +122,6 @@ def test_an_offline_wandb_run_ends_with_one_line_instead_of_wandbs_summary(tmp_p
     logger.log_metrics({"test/log_likelihood": 1.5, "epoch": 1})
     finish_loggers([logger])
     err = capfd.readouterr().err
-    assert "Run data is saved locally in" in err
     for gone in ("Run summary", "Run history", "test/log_likelihood", "You can sync this run"):
         assert gone not in err, gone
     (offline,) = (tmp_path / "wandb").glob("offline-run-*")

@@ -123,9 +123,9 @@ def test_summary_per_class_and_mean_over_classes():
     assert m["acc15/a"] == pytest.approx(1 / 3) and m["acc30/a"] == pytest.approx(2 / 3)
     assert m["acc15/b"] == pytest.approx(1 / 2) and m["acc30/b"] == pytest.approx(1 / 2)
     assert m["median_error_deg/a"] == 20.0 and m["median_error_deg/b"] == 20.0
-    # mean over ALL pairs of a class (not the mean of per-image means)
-    assert m["log_likelihood/a"] == pytest.approx(2.0) and m["log_likelihood/b"] == pytest.approx(3.0)
-    assert m["log_likelihood"] == pytest.approx(2.5) and m["acc15"] == pytest.approx((1 / 3 + 1 / 2) / 2)
+    # the mean of the per-image means (b: 10/2 and 20/8), not the mean over all pairs (30/10)
+    assert m["log_likelihood/a"] == pytest.approx(2.0) and m["log_likelihood/b"] == pytest.approx(3.75)
+    assert m["log_likelihood"] == pytest.approx(2.875) and m["acc15"] == pytest.approx((1 / 3 + 1 / 2) / 2)
     assert m["n_images"] == 5
 
 

@@ -5,8 +5,10 @@ from __future__ import annotations
 import functools
 import math
 
+import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 from torch import nn
 
 from conftest import haar_rotations
@@ -84,6 +86,45 @@ def test_training_loss_is_dense_cross_entropy_at_nearest_grid_point():
     assert loss.item() == pytest.approx(expected.item(), rel=1e-4)
     loss.backward()  # the streamed loss is differentiable
     assert module.net.linear.weight.grad.abs().sum() > 0
+
+
+def _paper_protocol_log_likelihood(probabilities, grid, targets, mask, class_index) -> float:
+    """The SYMSOL log likelihood as the paper's protocol computes it, written here from its description
+    with numpy and scipy alone: each (image, equivalent rotation) pair is read at the grid point whose
+    quaternion has the largest ``|dot|`` with the rotation's, ``log(p * N / pi^2)``; an image's value is
+    the mean over its equivalent set (the expectation of one equivalent drawn at random per image, as
+    the paper's code draws it, and IPDF's mean over all pairs where the sets have one size); a class's
+    value the mean over its images; the headline the mean over classes."""
+    grid_quats = Rotation.from_matrix(grid).as_quat()  # [N, 4]
+    per_class: dict[int, list[float]] = {}
+    for b in range(len(targets)):
+        real = Rotation.from_matrix(targets[b][mask[b]]).as_quat()  # [m, 4]
+        nearest = np.abs(grid_quats @ real.T).argmax(0)  # [m]
+        values = np.log(probabilities[b][nearest] * len(grid) / np.pi**2)
+        per_class.setdefault(int(class_index[b]), []).append(float(values.mean()))
+    return float(np.mean([np.mean(v) for v in per_class.values()]))
+
+
+def test_log_likelihood_weighs_every_image_once_as_the_papers_protocol_whatever_its_set_size():
+    """Sets of 3, 1, 2 and 1 equivalent rotations: the test's log likelihood is the mean over images of
+    each image's mean over its set (the paper's protocol, re-computed independently), not the mean over
+    all (image, rotation) pairs, which lets the images with large sets outweigh the others."""
+    module = _module(TinyNet(scale=5.0))
+    batch = _eval_batch()
+    module._record(module._evaluate(batch, level=2, spread_level=None))
+    got = module._summarize()
+    with torch.no_grad():
+        logits = dense_grid_logits(module(batch["image"]).double(), LMAX, 2)  # [B, N]
+    probabilities = torch.softmax(logits, dim=1).numpy()
+    grid = so3_healpix_index_to_matrix(torch.arange(logits.shape[1]), 2, dtype=torch.float64).numpy()
+    targets, mask = batch["rotations"].double().numpy(), batch["mask"].numpy()
+    expected = _paper_protocol_log_likelihood(probabilities, grid, targets, mask, batch["class_index"].numpy())
+    assert got["log_likelihood"] == pytest.approx(expected, rel=1e-5)
+    # the mean over all pairs of each class: a different number on these sets
+    ll = log_density_from_grid_logits(logits, batch["rotations"].double(), batch["mask"], 2)  # [B, M]
+    pairs = [float(ll[batch["class_index"] == c].nan_to_num(0).sum() / batch["mask"][batch["class_index"] == c].sum())
+             for c in (0, 1)]  # fmt: skip
+    assert abs(float(np.mean(pairs)) - expected) > 1e-3
 
 
 def test_evaluation_matches_dense_reference():

@@ -9,8 +9,11 @@ Conventions
 * Angular error of a point estimate: the geodesic angle to the nearest equivalent rotation, in
   degrees. Acc@t is the fraction of images with error <= t degrees.
 * Log likelihood: the model's log density (Haar measure of volume pi^2, read at the grid point
-  nearest the rotation, :meth:`SO3Distribution.log_density`) at EVERY real (image, equivalent
-  rotation) pair; a class's value is the mean over all its pairs. Uniform gives -log(pi^2) = -2.29.
+  nearest the rotation, :meth:`SO3Distribution.log_density`) at every real (image, equivalent
+  rotation) pair, averaged over the image's set first: a class's value is the mean over its images of
+  each image's mean, so every image weighs the same whatever the size of its set (the paper's
+  protocol: the expectation of its code's one equivalent rotation drawn per image, and IPDF's mean
+  over all pairs wherever a class's sets have one size). Uniform gives -log(pi^2) = -2.29.
 * Spread: ``sum_i p_i * min_j angle(R_i, R_gt_j)`` in degrees over the grid of a level, with ``p``
   the grid softmax: how far (on average) the probability mass lies from the nearest ground truth.
 * Calibration (docs/evaluation.md#calibration): the highest-density-region (HDR) level of a true
@@ -19,7 +22,7 @@ Conventions
   exactly uniform for a calibrated predictor, flat densities included). The truth lies in the HDR of
   mass ``alpha`` iff ``q < alpha``. Coverage at ``alpha`` (:data:`HDR_LEVELS`): the fraction of a class's
   real (image, target) pairs with ``q < alpha`` (every equivalent rotation an equally likely truth,
-  weighted as in the log likelihood); ECE: the mean over the levels of ``|coverage - alpha|``.
+  each pair weighing the same); ECE: the mean over the levels of ``|coverage - alpha|``.
 * Headline numbers are means over classes of the per-class values.
 """
 
@@ -307,6 +310,11 @@ def _median(x: torch.Tensor) -> float:
     return float(torch.quantile(x.double(), 0.5)) if len(x) else math.nan
 
 
+def _mean_of_image_means(sums: torch.Tensor, counts: torch.Tensor, sel: torch.Tensor) -> float:
+    """The mean over the selected images of ``sums / counts`` (each image's mean over its pairs)."""
+    return float((sums.cpu()[sel].double() / counts.cpu()[sel].double()).mean())
+
+
 def summarize_pose_metrics(
     class_index: torch.Tensor,
     class_names: Sequence[str],
@@ -321,10 +329,11 @@ def summarize_pose_metrics(
     ``(n_images, len(HDR_LEVELS))``).
 
     Keys: ``{metric}/{class}`` for each class present and ``{metric}`` for the mean over those
-    classes, with metric in ``log_likelihood`` (mean over all pairs of the class, from per-image
-    sums ``ll_sum`` and pair counts ``ll_count``), ``spread_deg``, ``acc15``, ``acc30``,
-    ``median_error_deg``, ``log_likelihood_exact`` (the same mean of a family's continuous log
-    density, from ``ll_exact_sum``, for families with a closed-form normaliser), and the calibration:
+    classes, with metric in ``log_likelihood`` (the mean over the class's images of each image's mean
+    over its equivalent set: per-image sums ``ll_sum`` over pair counts ``ll_count``), ``spread_deg``,
+    ``acc15``, ``acc30``, ``median_error_deg``, ``log_likelihood_exact`` (the same mean of a family's
+    continuous log density, from ``ll_exact_sum``, for families with a closed-form normaliser), and the
+    calibration:
     ``hdr_coverage_10`` ... ``hdr_coverage_90`` (the fraction of the class's pairs inside the HDR of
     that mass, from per-image counts ``hdr_counts`` (:func:`hdr_coverage_counts`) over ``ll_count``)
     and ``calibration_ece`` (the mean over the levels of ``|coverage - alpha|``); plus ``n_images``.
@@ -341,10 +350,9 @@ def summarize_pose_metrics(
     for c in present:
         sel = class_index == c
         if ll_sum is not None and ll_count is not None:
-            put("log_likelihood", c, float(ll_sum.cpu()[sel].double().sum() / ll_count.cpu()[sel].double().sum()))
+            put("log_likelihood", c, _mean_of_image_means(ll_sum, ll_count, sel))
         if ll_exact_sum is not None and ll_count is not None:
-            count = ll_count.cpu()[sel].double().sum()
-            put("log_likelihood_exact", c, float(ll_exact_sum.cpu()[sel].double().sum() / count))
+            put("log_likelihood_exact", c, _mean_of_image_means(ll_exact_sum, ll_count, sel))
         if hdr_counts is not None and ll_count is not None:
             coverage = hdr_counts.cpu()[sel].double().sum(0) / ll_count.cpu()[sel].double().sum()  # [L]
             for key, value in zip(HDR_COVERAGE_KEYS, coverage.tolist(), strict=True):

@@ -189,6 +189,23 @@ def test_every_class_weighs_the_same_and_each_gets_its_own_diagnostic_temperatur
     assert pooled.temperature < fit.temperature
 
 
+def test_an_image_weighs_the_same_whatever_the_size_of_its_set_as_in_the_tests_log_likelihood():
+    """One class of 80 images drawn at temperature 0.5 with one rotation each and 80 drawn at 2 whose
+    set holds their rotation 8 times: each image's mean over its set is that of its one rotation, so the
+    fit, its log likelihood and the test's headline are those of the same images with sets of one. A
+    mean over all pairs would let the 640 pairs of the broad images pull the temperature towards 2."""
+    sharp, broad = _drawn_at(0.5, n=80, seed=0)[0], _drawn_at(2.0, n=80, seed=5)[0]
+    repeated = broad._replace(targets=broad.targets.expand(80, 8, 3, 3), mask=torch.ones(80, 8, dtype=torch.bool),
+                              u=tie_break_uniforms(range(80, 160), 8))  # fmt: skip
+    single = fit_temperature([sharp, broad], level=3)
+    fit = fit_temperature([sharp, repeated], level=3)
+    assert fit.temperature == pytest.approx(single.temperature, rel=0.02)
+    assert fit.log_likelihood_before == pytest.approx(single.log_likelihood_before, rel=1e-6)
+    assert fit.n_pairs == 80 + 640 and single.n_pairs == 160
+    before, _, _ = score_temperature([sharp, repeated], 1.0, 3, 1)
+    assert before == pytest.approx(single.log_likelihood_before, rel=1e-6)
+
+
 def _pairs(model, truths: torch.Tensor) -> list[ScoredPairs]:
     n = len(truths)
     mask = torch.ones(n, 1, dtype=torch.bool)

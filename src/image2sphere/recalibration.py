@@ -9,10 +9,10 @@ Conventions
   estimate's errors and accuracies, nor which rotations a region of given mass starts from; what
   changes is how much mass every region holds, i.e. the log likelihood, the spread and the calibration.
 * ``T`` is fitted on the validation split: the value in ``[TEMPERATURE_BOUNDS]`` that maximises the
-  validation log likelihood as the test's headline reads it: the mean over every (image, equivalent
-  rotation) pair of a class, at the grid point nearest each rotation on the grid of ``grid_level``,
-  then the mean over classes (so a class with many equivalent rotations, a cone's 360 against a
-  cube's 24, weighs as much as any other). The log likelihood is a proper
+  validation log likelihood as the test's headline reads it: each image's mean over its equivalent
+  rotations, read at the grid point nearest each rotation on the grid of ``grid_level``, the mean over
+  a class's images, then the mean over classes (so an image with many equivalent rotations weighs as
+  much as one with few, and a class with few images as much as any other). The log likelihood is a proper
   scoring rule: it is maximised by the temperature whose regions hold the mass they claim. The
   search is a bounded one-dimensional search on ``log T`` (scipy's ``minimize_scalar``) over the grid
   values of every validation image, computed once (at most ``MAX_FIT_BYTES``: a coarser grid is used for a
@@ -197,33 +197,38 @@ def score_temperature(
 ) -> tuple[float, float, int]:
     """``(log likelihood, ECE, number of pairs)`` of the batches' distributions at ``temperature`` on the
     grid of ``level`` (one streamed sweep per batch, :func:`~image2sphere.metrics.density_pairs`, as the
-    test scores them): each the mean over the classes of the class's value over its real pairs.
-    ``reduce`` sums a float64 tensor across processes (identity when ``None``)."""
+    test scores them), each the mean over the classes of the class's value: for the log likelihood the
+    mean over its images of each image's mean over its real pairs, for the ECE the coverage over its real
+    pairs. ``reduce`` sums a float64 tensor across processes (identity when ``None``)."""
     temperature = check_temperature(temperature)
     n_levels = len(HDR_LEVELS)
-    totals = torch.zeros(num_classes, 2 + n_levels, dtype=torch.float64)  # [C, (ll sum, pairs, counts)]
+    # [C, (sum of image means, images, pairs, HDR counts)]
+    totals = torch.zeros(num_classes, 3 + n_levels, dtype=torch.float64)
     for batch in batches:
         dist = batch.dist.tempered(temperature)
         pairs = density_pairs(dist, batch.targets, batch.mask, level, batch.u)
         mask = batch.mask.to(pairs.log_density.device)
+        n_pairs = mask.sum(1, keepdim=True).double()  # [B, 1]
         rows = torch.cat(
             [
-                pairs.log_density.double().masked_fill(~mask, 0.0).sum(1, keepdim=True),
-                mask.sum(1, keepdim=True).double(),
+                pairs.log_density.double().masked_fill(~mask, 0.0).sum(1, keepdim=True) / n_pairs,
+                torch.ones_like(n_pairs),
+                n_pairs,
                 hdr_coverage_counts(pairs.hdr_level, mask).double(),
             ],
             dim=1,
-        ).cpu()  # [B, 2 + L]
+        ).cpu()  # [B, 3 + L]
         totals.index_add_(0, batch.class_index.long().cpu(), rows)
     if reduce is not None:
         totals = reduce(totals).double().cpu()
-    n = int(totals[:, 1].sum())
+    n = int(totals[:, 2].sum())
     if n == 0:
         raise ValueError("no validation pair to fit a temperature on: the validation split is empty")
-    means = _class_means(torch.cat([totals[:, :1], totals[:, 2:]], dim=1), totals[:, 1])  # [C', 1 + L]
+    log_likelihood = _class_means(totals[:, :1], totals[:, 1])[:, 0]  # [C']
+    coverage = _class_means(totals[:, 3:], totals[:, 2])  # [C', L]
     alphas = torch.tensor(HDR_LEVELS, dtype=torch.float64)
-    ece = (means[:, 1:] - alphas).abs().mean(1)  # [C']
-    return float(means[:, 0].mean()), float(ece.mean()), n
+    ece = (coverage - alphas).abs().mean(1)  # [C']
+    return float(log_likelihood.mean()), float(ece.mean()), n
 
 
 class _GridValues(NamedTuple):
@@ -266,9 +271,10 @@ def fit_temperature(
     xatol: float = 0.01,
 ) -> Recalibration:
     """The temperature that maximises the batches' log likelihood, the mean over classes of each class's
-    mean over its pairs, on the grid of ``level`` (module docstring; :func:`fit_level` picks a coarser grid
-    where the values would not fit in memory). ``num_classes``: the number of classes (default: the
-    largest class index + 1; give it in a distributed run, where a process may not see every class).
+    mean over its images of each image's mean over its pairs, on the grid of ``level`` (module docstring;
+    :func:`fit_level` picks a coarser grid where the values would not fit in memory). ``num_classes``: the
+    number of classes (default: the largest class index + 1; give it in a distributed run, where a process
+    may not see every class).
 
     Each distribution's values on the grid are computed once; the search then only rescales them (the
     log likelihood of a pair at temperature ``T`` is ``v / T - logsumexp(grid / T) + log N - log(pi^2)``).
@@ -291,11 +297,13 @@ def fit_temperature(
     constant = math.log(math.prod(so3_grid_size(level))) + LOG_UNIFORM_DENSITY
 
     def class_log_likelihoods(temperature: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per class: the log likelihood summed over its pairs, and its number of pairs ``(C,)`` each."""
+        """Per class: the sum over its images of each image's mean log likelihood over its pairs, and its
+        number of images ``(C,)`` each."""
         totals = torch.zeros(num_classes, 2, dtype=torch.float64)
         for v in values:
             lse = torch.logsumexp(v.grid / temperature, dim=1)  # [B]
-            rows = torch.stack([v.at_pairs / temperature - v.pairs * lse + v.pairs * constant, v.pairs], dim=1)
+            image_mean = v.at_pairs / (temperature * v.pairs) - lse + constant  # [B]
+            rows = torch.stack([image_mean, torch.ones_like(image_mean)], dim=1)
             totals.index_add_(0, v.class_index.cpu(), rows.cpu())
         if reduce is not None:
             totals = reduce(totals).double().cpu()

@@ -132,8 +132,9 @@ def announce_test_cost(module, n_images: int, level: int, spread_level: int | No
     seconds = estimate_test_seconds(cost, n_images, level, spread_level)
     if seconds > LONG_TEST_SECONDS:  # measured again before a warning: a moment's slowdown is no reason for one
         again = _probe_as_tested(module, plugin, level)
-        if again is not None and estimate_test_seconds(again, n_images, level, spread_level) < seconds:
-            cost, seconds = again, estimate_test_seconds(again, n_images, level, spread_level)
+        seconds_again = math.inf if again is None else estimate_test_seconds(again, n_images, level, spread_level)
+        if seconds_again < seconds:
+            cost, seconds = again, seconds_again
     line = (
         f"The test of {n_images} images on the grid of level {level} will take about {format_duration(seconds)} "
         f"on this {module.device.type} (estimated by scoring one image on small grids)"

@@ -38,6 +38,21 @@ def test_training_plots_fixed_validation_images_into_the_run_and_the_logger(trai
     assert events and max(e.stat().st_size for e in events) > 10_000  # the figures went to TensorBoard too
 
 
+def test_validation_logs_each_class_curve_whose_mean_is_the_logged_mean(trained):
+    """A shape that stays at uniform while the others learn shows in the logger, not only in the test."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    _, run, _ = trained
+    (events,) = {e.parent for e in (run / "tensorboard").rglob("events.out.tfevents.*")}
+    scalars = EventAccumulator(str(events), size_guidance={"scalars": 0}).Reload()
+    tags = set(scalars.Tags()["scalars"])
+    for metric in ("log_likelihood", "acc15", "median_error_deg"):
+        assert {f"val/{metric}/cube", f"val/{metric}/cone"} <= tags, sorted(tags)
+    last = {t: scalars.Scalars(t)[-1].value for t in ("val/log_likelihood", "val/log_likelihood/cube",
+                                                       "val/log_likelihood/cone")}  # fmt: skip
+    assert last["val/log_likelihood"] == pytest.approx((last["val/log_likelihood/cube"] + last["val/log_likelihood/cone"]) / 2, rel=1e-5)
+
+
 def test_eval_scores_every_test_image_and_reproduces_the_training_metrics(trained, tmp_path):
     ckpt, run, _ = trained
     out = tmp_path / "eval"

@@ -365,6 +365,10 @@ class PoseEstimationModule(pl.LightningModule):
             return
         keys = ("loss", "log_likelihood", "median_error_deg", "acc15")  # log_likelihood: density methods only
         self.log_dict({f"val/{k}": m[k] for k in keys if k in m}, prog_bar=True, sync_dist=False)
+        # each class's curve for the loggers (one shape can sit at uniform while the mean rises); not in the bar
+        per_class = {f"val/{k}": v for k, v in m.items() if "/" in k and k.split("/", 1)[0] in keys}
+        if per_class:
+            self.log_dict(per_class, prog_bar=False, sync_dist=False)
 
     def test_step(self, batch: dict | None, batch_idx: int) -> None:
         if self._count_skipped(batch, "test"):

@@ -593,6 +593,33 @@ def test_writer_leaves_nothing_after_an_exception(tmp_path, monkeypatch):
     assert os.listdir(tmp_path) == []
 
 
+@pytest.mark.parametrize("other_seed", [3, 4], ids=["same set", "another set"])
+def test_writer_uses_the_same_set_completed_by_another_process_meanwhile(tmp_path, monkeypatch, other_seed):
+    """Two runs started together on the built-in data both render it: the one that finishes second
+    uses the first one's set (the same bytes) instead of failing; a different set there is refused."""
+    root = tmp_path / "set"
+    other = {**WRITER_ARGS, "seed": other_seed}
+    calls = []
+
+    def render_while_another_process_finishes(*args, **kwargs):
+        if not calls:  # the other process completes its set while this one renders its first batch
+            calls.append(1)
+            with monkeypatch.context() as m:  # another process: another pid, so another partial directory
+                m.setattr(render_module.os, "getpid", lambda: 1)
+                render_symsol(root, progress=False, **other)
+        return render(*args, **kwargs)
+
+    monkeypatch.setattr(render_module, "render", render_while_another_process_finishes)
+    if other_seed == WRITER_ARGS["seed"]:
+        result = render_symsol(root, progress=False, **WRITER_ARGS)
+        assert result["cached"] and result["rendered"] == 0
+    else:
+        with pytest.raises(FileExistsError, match="appeared or changed while rendering"):
+            render_symsol(root, progress=False, **WRITER_ARGS)
+    assert calls and os.listdir(tmp_path) == ["set"]  # no partial directory left behind
+    assert json.loads((root / "render_info.json").read_text())["seed"] == other_seed
+
+
 def test_writer_argument_validation(tmp_path):
     with pytest.raises(ValueError, match="valid shapes are tet, cube"):
         render_symsol(tmp_path / "a", shapes=("tet", "dodeca"))

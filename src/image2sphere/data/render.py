@@ -236,6 +236,12 @@ def render_symsol(
         try:
             os.rename(partial, root)  # atomic; replaces ``root`` only if it is an empty directory
         except OSError as err:
+            if _holds_set(root, params):
+                # another process (a second run started at the same time) rendered the same set and moved
+                # it there first: byte for byte what this one rendered, so use it and drop ours
+                shutil.rmtree(partial, ignore_errors=True)
+                log.info("%s was completed by another process with the same parameters while rendering: using it", root)
+                return _writer_result(root, counts, total, rendered=0, seconds=time.perf_counter() - t0)
             raise FileExistsError(
                 f"{root} appeared or changed while rendering; the new set was not moved there. "
                 "Choose another directory or delete it"
@@ -244,6 +250,15 @@ def render_symsol(
         shutil.rmtree(partial, ignore_errors=True)
         raise
     return _writer_result(root, counts, total, rendered=total, seconds=time.perf_counter() - t0)
+
+
+def _holds_set(root: Path, params: dict) -> bool:
+    """Whether ``root`` holds a complete set rendered with ``params`` (its ``render_info.json`` equal)."""
+    try:
+        existing = json.loads((root / _INFO_NAME).read_text())
+    except (OSError, ValueError):
+        return False
+    return existing == params and _is_complete(root, params)
 
 
 def _writer_result(root: Path, counts: dict, total: int, rendered: int, seconds: float) -> dict:

@@ -38,8 +38,9 @@ class SO3PlotCallback(pl.Callback):
 
     The first ``n_images`` validation images (the same ones every time) are drawn with
     :func:`image2sphere.plot.plot_so3_distribution` at grid ``level``, their ground truth as rings.
-    PNGs go to ``<run dir>/plots/epoch=<e>_image=<i>.png`` and to the loggers that take images
-    (wandb: ``val/so3_plot``; TensorBoard: a figure per image).
+    PNGs go to ``<run dir>/plots/epoch=<e>_image=<i>.png`` (``epoch=<e>_step=<s>_image=<i>.png`` when
+    ``trainer.val_check_interval`` is set, so that validations within an epoch keep their own files) and
+    to the loggers that take images (wandb: ``val/so3_plot``; TensorBoard: a figure per image).
 
     Args:
         every_n_epochs: plot after the validation of every n-th epoch (and never in the sanity check).
@@ -70,6 +71,9 @@ class SO3PlotCallback(pl.Callback):
 
         folder = Path(trainer.default_root_dir) / "plots"
         names = getattr(pl_module, "class_names", None) or []
+        stem = f"epoch={trainer.current_epoch:03d}"
+        if trainer.val_check_interval != 1.0:  # validations within an epoch: each its own files (never overwritten)
+            stem += f"_step={trainer.global_step:06d}"
         paths = []
         for i in range(min(self.n_images, len(dataset))):
             item = dataset[i]
@@ -77,7 +81,7 @@ class SO3PlotCallback(pl.Callback):
                 continue
             title = f"epoch {trainer.current_epoch}, validation image {i}"
             fig = plot_dataset_item(pl_module, item, self.level, self.threshold, title, names)
-            path = save_figure(fig, folder / f"epoch={trainer.current_epoch:03d}_image={i}.png")
+            path = save_figure(fig, folder / f"{stem}_image={i}.png")
             paths.append(path)
             for logger in trainer.loggers:
                 if type(logger).__name__ == "TensorBoardLogger":

@@ -48,9 +48,8 @@ def test_validation_logs_each_class_curve_whose_mean_is_the_logged_mean(trained)
     tags = set(scalars.Tags()["scalars"])
     for metric in ("log_likelihood", "acc15", "median_error_deg"):
         assert {f"val/{metric}/cube", f"val/{metric}/cone"} <= tags, sorted(tags)
-    last = {t: scalars.Scalars(t)[-1].value for t in ("val/log_likelihood", "val/log_likelihood/cube",
-                                                       "val/log_likelihood/cone")}  # fmt: skip
-    assert last["val/log_likelihood"] == pytest.approx((last["val/log_likelihood/cube"] + last["val/log_likelihood/cone"]) / 2, rel=1e-5)
+    mean, cube, cone = (scalars.Scalars(f"val/log_likelihood{c}")[-1].value for c in ("", "/cube", "/cone"))
+    assert mean == pytest.approx((cube + cone) / 2, rel=1e-5)
 
 
 def test_eval_scores_every_test_image_and_reproduces_the_training_metrics(trained, tmp_path):

@@ -115,6 +115,20 @@ def test_so3_conv_filter_is_locally_supported():
     assert angles.max() >= max_angle - 1e-9 and angles.min() == 0
 
 
+@pytest.mark.parametrize("out_channels", [1, 3])
+def test_each_weights_gradient_has_the_weights_strides(out_channels, gen):
+    """DDP's reducer copies (and warns about) a gradient whose strides differ from its parameter's; the last
+    SO(3) convolution of I2S has one output channel, a size-1 dimension that an einsum gives another stride.
+    The filter equals the einsum it replaces."""
+    layers = torch.nn.Sequential(S2Conv(5, 4, LMAX), SO3ReLU(LMAX, resolution=8), SO3Conv(4, out_channels, LMAX))
+    x = torch.randn(2, 5, (LMAX + 1) ** 2, generator=gen)
+    layers(x).square().sum().backward()
+    for name, p in layers.named_parameters():
+        assert p.grad.stride() == p.stride(), name
+    conv = layers[2]
+    torch.testing.assert_close(conv.filter(), torch.einsum("fgk,kn->fgn", conv.weight, conv.kernel_D))
+
+
 def test_layers_reject_bad_shapes():
     with pytest.raises(ValueError, match="S2 input must have shape"):
         S2Conv(4, 2, LMAX)(torch.randn(2, 4, 50))

@@ -75,7 +75,11 @@ class SO3Conv(nn.Module):
 
     def filter(self) -> torch.Tensor:
         """The filter's SO(3) coefficients ``[f_in, f_out, n_so3_coeffs]`` (flat Wigner layout)."""
-        return torch.einsum("fgk,kn->fgn", self.weight, self.kernel_D)
+        f, g, k = self.weight.shape
+        # one matrix product on the weight's contiguous rows, so that the weight's gradient has the weight's own
+        # strides also when out_channels is 1 (an einsum gives a size-1 dimension another stride, and DDP's
+        # reducer then copies the gradient and warns "Grad strides do not match bucket view strides")
+        return (self.weight.reshape(f * g, k) @ self.kernel_D).unflatten(0, (f, g))  # [f_in, f_out, n_so3_coeffs]
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         n = n_so3_coeffs(self.lmax)

@@ -97,6 +97,9 @@ def test_ddp_run_trains_and_tests_every_image_once_on_two_processes(ddp_run):
     out = proc.stdout + proc.stderr
     assert "GLOBAL_RANK: 1, MEMBER: 2/2" in out  # a second process really joined
     assert "sync_batchnorm=true needs CUDA devices" in out  # trainer=ddp's SyncBatchNorm, off on the CPU
+    # each fork-server loader worker runs src.train again as __mp_main__: without a word on the terminal
+    assert "found in sys.modules after import of package" not in out
+    assert "Grad strides do not match bucket view strides" not in out  # no gradient copied by DDP's reducer
     metrics = read_metrics(run)
     assert metrics["n_images"] == 2 * TEST_PER_SHAPE
     assert (run / "csv").is_dir()

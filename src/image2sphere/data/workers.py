@@ -56,7 +56,8 @@ START_METHODS = ("fork", "forkserver", "spawn")
 DEFAULT_START_METHOD = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
 # imported once by the fork server, so that its workers find them imported: what unpickling a dataset,
 # the collate function and init_worker needs (image2sphere.data imports every dataset module)
-FORKSERVER_PRELOAD = ("torch", "numpy", "PIL.Image", "image2sphere.data")
+# (image2sphere.data.fork_server first: it silences runpy's warning when a worker runs the main module again)
+FORKSERVER_PRELOAD = ("image2sphere.data.fork_server", "torch", "numpy", "PIL.Image", "image2sphere.data")
 
 
 def available_cpus() -> int:

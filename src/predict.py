@@ -4,17 +4,19 @@ import hydra
 from omegaconf import DictConfig
 
 import image2sphere  # noqa: F401  (sets up the torchvision guard before Lightning is imported)
-from image2sphere.inference import predict
-from image2sphere.training import register_resolvers
 from image2sphere.training.command_line import check_command_line
 from image2sphere.training.entry import entry_point
-from image2sphere.training.run_config import check_predict_config
+from image2sphere.training.resolvers import register_resolvers
 
 register_resolvers()
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="predict.yaml")
 def main(cfg: DictConfig) -> None:
+    # the model and its checks: imported when a prediction starts (src/train.py)
+    from image2sphere.inference import predict
+    from image2sphere.training.run_config import check_predict_config
+
     with entry_point():  # a refused value: one line, exit status 1; a failed start leaves no run directory
         check_predict_config(cfg)
         predict(

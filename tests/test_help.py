@@ -279,13 +279,19 @@ def test_hydra_help_stays_hydras():
 @pytest.mark.slow
 def test_help_of_each_command_as_a_terminal_gets_it():
     """The three ``--help`` (exit status 0, nothing on stderr, the text that :func:`help_text` renders), and
-    ``src.train --hydra-help`` still Hydra's. ``src.train --help`` runs as a process of its own (about 4 s,
-    mostly imports); the others in this process (``run_command``), which the entry points treat alike."""
+    ``src.train --hydra-help`` still Hydra's. ``src.train --help`` runs as a process of its own, which imports
+    neither Lightning nor the networks (``-X importtime`` lists every import on stderr); the others in this
+    process (``run_command``), which the entry points treat alike."""
     from image2sphere.testing import run_command
 
-    with process_group([sys.executable, "-m", "src.train", "--help"], cwd=REPO, stdout=subprocess.PIPE,
-                       stderr=subprocess.PIPE, text=True) as proc:  # fmt: skip
-        results = {"train": (*proc.communicate(timeout=300), proc.returncode)}
+    with process_group([sys.executable, "-X", "importtime", "-m", "src.train", "--help"], cwd=REPO,
+                       stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as proc:  # fmt: skip
+        out, err = proc.communicate(timeout=300)
+    imported = [line.rsplit("|", 1)[-1].strip() for line in err.splitlines() if line.startswith("import time:")]
+    heavy = sorted({name.split(".")[0] for name in imported} & {"lightning", "torchmetrics", "torchvision", "e3nn"})
+    assert "torch" in imported and heavy == [], heavy
+    err = "".join(line + "\n" for line in err.splitlines() if not line.startswith("import time:"))
+    results = {"train": (out, err, proc.returncode)}
     for name, args in {"eval": ["--help"], "predict": ["--help"], "train --hydra-help": ["--hydra-help"]}.items():
         done = run_command([sys.executable, "-m", f"src.{name.split()[0]}", *args], cwd=REPO)
         results[name] = (done.stdout, done.stderr, done.returncode)

@@ -51,13 +51,12 @@ import torch  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from _machine import cpu_model, load_line  # noqa: E402  (benchmarks/_machine.py, beside this script)
+from image2sphere.data.datamodule import ModelNet10DataModule, Pascal3DDataModule, SymsolDataModule  # noqa: E402
 from image2sphere.data.fixtures.modelnet10 import write_modelnet10  # noqa: E402
 from image2sphere.data.fixtures.pascal3d import write_pascal3d, write_renderforcnn  # noqa: E402
 from image2sphere.data.fixtures.symsol import write_symsol  # noqa: E402
 from image2sphere.data.loading import EpochDataset, EpochIndex  # noqa: E402
-from image2sphere.data.modelnet import ModelNet10DataModule, close_lmdb_environments  # noqa: E402
-from image2sphere.data.pascal3d import Pascal3DDataModule  # noqa: E402
-from image2sphere.data.symsol import SymsolDataModule  # noqa: E402
+from image2sphere.data.modelnet import close_lmdb_environments  # noqa: E402
 from image2sphere.data.workers import auto_num_workers, available_cpus, local_processes  # noqa: E402
 
 CONF = Path(__file__).resolve().parents[1] / "conf" / "dataset"

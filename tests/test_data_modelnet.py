@@ -18,14 +18,10 @@ from torch.utils.data import DataLoader, Subset
 
 from image2sphere.data import modelnet
 from image2sphere.data.common import IMAGENET_MEAN, IMAGENET_STD, CorruptImageError, DatasetNotFoundError
+from image2sphere.data.datamodule import ModelNet10DataModule
 from image2sphere.data.fixtures.modelnet10 import corrupt_modelnet10_record, write_modelnet10
 from image2sphere.data.loading import collate_skipping_corrupt
-from image2sphere.data.modelnet import (
-    MissingRecordError,
-    ModelNet10DataModule,
-    ModelNet10Dataset,
-    close_lmdb_environments,
-)
+from image2sphere.data.modelnet import MissingRecordError, ModelNet10Dataset, close_lmdb_environments
 from image2sphere.data.modelnet_labels import (
     MODELNET10_CLASSES,
     load_modelnet10_labels,

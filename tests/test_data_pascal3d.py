@@ -12,6 +12,7 @@ import torch
 
 from image2sphere.data.augment import GL_TO_CV, MIRROR_X, box_to_virtual_camera, hflip_image, hflip_rotation, warp_image
 from image2sphere.data.common import CorruptImageError, DatasetNotFoundError
+from image2sphere.data.datamodule import Pascal3DDataModule
 from image2sphere.data.fixtures.pascal3d import (
     DOT_COLOURS,
     OBJECT_POINTS,
@@ -21,7 +22,7 @@ from image2sphere.data.fixtures.pascal3d import (
     write_renderforcnn,
 )
 from image2sphere.data.loading import collate_skipping_corrupt
-from image2sphere.data.pascal3d import Pascal3DDataModule, Pascal3DDataset
+from image2sphere.data.pascal3d import Pascal3DDataset
 from image2sphere.data.pascal3d_annotations import (
     list_pascal3d_objects,
     list_renderforcnn,

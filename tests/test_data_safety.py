@@ -21,12 +21,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from image2sphere.data.datamodule import ModelNet10DataModule, SymsolDataModule
 from image2sphere.data.fixtures.modelnet10 import write_modelnet10
 from image2sphere.data.fixtures.symsol import write_symsol
-from image2sphere.data.modelnet import ModelNet10DataModule, close_lmdb_environments
+from image2sphere.data.modelnet import close_lmdb_environments
 from image2sphere.data.modelnet_labels import load_modelnet10_labels
 from image2sphere.data.safe_io import DatasetFileError, UnsafePickleError, load_npz, load_pickle, open_lmdb
-from image2sphere.data.symsol import SymsolDataModule
 from image2sphere.data.symsol_labels import load_symsol_rotations
 from image2sphere.data.verify import main as verify
 

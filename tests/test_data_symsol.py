@@ -9,9 +9,10 @@ from PIL import Image
 
 from conftest import haar_rotations
 from image2sphere.data.common import CorruptImageError, DatasetNotFoundError, normalize_images
+from image2sphere.data.datamodule import SymsolDataModule
 from image2sphere.data.fixtures.symsol import write_symsol
 from image2sphere.data.loading import EpochShuffleSampler, collate_skipping_corrupt
-from image2sphere.data.symsol import SymsolDataModule, SymsolDataset
+from image2sphere.data.symsol import SymsolDataset
 from image2sphere.data.symsol_labels import load_symsol_rotations
 from image2sphere.data.verify import verify_symsol
 

@@ -22,16 +22,17 @@ import torch
 from omegaconf import OmegaConf
 
 from image2sphere.data import common, modelnet
+from image2sphere.data.datamodule import ModelNet10DataModule, Pascal3DDataModule, SymsolDataModule
 from image2sphere.data.fixtures.modelnet10 import write_modelnet10
 from image2sphere.data.fixtures.pascal3d import write_pascal3d, write_renderforcnn
 from image2sphere.data.fixtures.symsol import write_symsol
 from image2sphere.data.loading import EpochIndex, EpochShuffleSampler
-from image2sphere.data.modelnet import ModelNet10DataModule, ModelNet10Dataset, close_lmdb_environments
-from image2sphere.data.pascal3d import Pascal3DDataModule, SyntheticViews
+from image2sphere.data.modelnet import ModelNet10Dataset, close_lmdb_environments
+from image2sphere.data.pascal3d import SyntheticViews
 from image2sphere.data.pascal3d_annotations import SyntheticView
-from image2sphere.data.symsol import SymsolDataModule
 from image2sphere.data.workers import (
     DEFAULT_START_METHOD,
+    FORKSERVER_PRELOAD,
     auto_num_workers,
     check_multiprocessing_context,
     check_num_workers,
@@ -257,6 +258,23 @@ def test_spawned_workers_read_modelnet_without_pickling_the_environment(roots):
     assert_same_batches(epoch_batches(loader, 0), epoch_batches(reference.train_dataloader(), 0))
     assert_same_batches(epoch_batches(loader, 1), epoch_batches(reference.train_dataloader(), 1))
     assert_same_batches(list(dm.test_dataloader()), list(reference.test_dataloader()))
+
+
+@pytest.mark.slow
+def test_what_a_fork_server_preloads_does_not_import_lightning():
+    """A loader worker unpickles its Dataset, and the fork server preloads what that needs
+    (FORKSERVER_PRELOAD) and the main module: none of it imports Lightning, torchmetrics or torchvision (the
+    LightningDataModules live in image2sphere.data.datamodule; the entry points import the pipeline in main)."""
+    code = (
+        "import sys, importlib\n"
+        f"for name in {[*FORKSERVER_PRELOAD, 'src.train', 'src.eval', 'src.predict']!r}:\n"
+        "    importlib.import_module(name)\n"
+        "import image2sphere.data.symsol, image2sphere.data.modelnet, image2sphere.data.pascal3d\n"
+        "print(sorted({m.split('.')[0] for m in sys.modules} & {'lightning', 'torchmetrics', 'torchvision'}))"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.strip() == "[]", proc.stdout
 
 
 @pytest.mark.slow

@@ -239,7 +239,7 @@ def test_small_symsol_trains_symsol_one_once_and_each_symsol_two_shape_alone(tmp
     """table=small/symsol: on the renderer, 8 epochs (x0.1 after 6), level-4 test grid; SYMSOL I's five
     shapes in one model and each SYMSOL II shape in its own, each with one random label and with every
     equivalent label, over seeds 0, 1 and 2; and the datamodule each job builds trains on those shapes."""
-    from image2sphere.data.symsol import SymsolDataModule
+    from image2sphere.data.datamodule import SymsolDataModule
 
     jobs = table_jobs("small/symsol")
     assert len(jobs) == 3 * 2 * (1 + 3)

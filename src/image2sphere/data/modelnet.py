@@ -1,4 +1,5 @@
-"""ModelNet10-SO(3) (Liao et al. 2019): its Dataset, reading the views from the split's LMDB, and DataModule.
+"""ModelNet10-SO(3) (Liao et al. 2019): its Dataset, reading the views from the split's LMDB (the DataModule
+is in :mod:`image2sphere.data.datamodule`).
 
 The layout, view ids and labels are read by :mod:`image2sphere.data.modelnet_labels`
 (docs/datasets.md#modelnet10-so3-layout).
@@ -28,7 +29,6 @@ from __future__ import annotations
 
 import logging
 import os
-from collections import defaultdict
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -37,22 +37,17 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from image2sphere.checks import check_int
 from image2sphere.data.common import (
     CorruptImageError,
     check_corrupt_policy,
     load_image,
     skip_corrupt,
-    stable_seed,
 )
-from image2sphere.data.datamodule import PoseDataModule
 from image2sphere.data.loading import single_label_item
 from image2sphere.data.modelnet_labels import (
     GET_FROM,
-    MODELNET10_CLASSES,
     MODELNET10_SPLITS,
     QUATERNION_FILE,
-    TRAIN_SPLITS,
     ModelNet10Labels,
     check_split_files,
     lmdb_dir,
@@ -61,9 +56,9 @@ from image2sphere.data.modelnet_labels import (
 from image2sphere.data.safe_io import open_lmdb
 
 __all__ = [
-    "ModelNet10DataModule",
     "ModelNet10Dataset",
     "MissingRecordError",
+    "check_lmdb_not_empty",
     "close_inherited_lmdb_environments",
     "close_lmdb_environments",
     "lmdb_environment",
@@ -119,7 +114,7 @@ def close_lmdb_environments() -> None:
         del _ENVIRONMENTS[key]
 
 
-def _check_lmdb_not_empty(directory: Path) -> int:
+def check_lmdb_not_empty(directory: Path) -> int:
     """The number of records of the LMDB at ``directory``; ``ValueError`` naming it when there are none."""
     entries = int(lmdb_environment(directory).stat()["entries"])
     if entries == 0:
@@ -176,7 +171,7 @@ class ModelNet10Dataset(Dataset):
         self.on_corrupt = check_corrupt_policy(on_corrupt, "on_corrupt")
         if labels is None:
             check_split_files(self.root, [split])
-            _check_lmdb_not_empty(self.lmdb_dir)
+            check_lmdb_not_empty(self.lmdb_dir)
             labels = load_modelnet10_labels(self.lmdb_dir)
         self.labels = labels
         self.rows = np.arange(len(labels)) if rows is None else np.asarray(rows, dtype=np.int64).reshape(-1)
@@ -224,121 +219,3 @@ class ModelNet10Dataset(Dataset):
             skip_corrupt(e, self.on_corrupt, self._warned)
             return None
         return single_label_item(image, self.labels.class_index[row], row, self.labels.rotations[row], self.return_all)
-
-
-class ModelNet10DataModule(PoseDataModule):
-    """ModelNet10-SO(3) train / validation / test loaders.
-
-    Args:
-        root: the ``ModelNet10-SO3`` folder (holding the ``*.Rawjpg.lmdb`` directories).
-        train_split: ``"train_100V"`` (full, 100 views per instance) or ``"train_20V"`` (limited).
-        test_split: the evaluation split, normally ``"test_20V"``.
-        val_instances_per_class: object instances per class held out of the training split (chosen
-            with ``seed``); all their views form the validation set. 0: no validation.
-        image_size: network input size; images are resized when the records differ.
-        batch_size, num_workers, pin_memory: loader settings (evaluation uses the same batch size);
-            ``num_workers`` an integer or ``"auto"`` (see :class:`~image2sphere.data.datamodule.PoseDataModule`).
-        on_corrupt: ``"fail"`` or ``"skip"`` for records that do not decode.
-        seed: seed of the validation split and of the shuffling.
-        multiprocessing_context: how loader workers start, ``"fork"``, ``"forkserver"`` or ``"spawn"``; ``None``:
-            ``forkserver`` on Linux (see :class:`~image2sphere.data.datamodule.PoseDataModule`).
-
-    The constructor checks that the needed files are there, so a wrong ``dataset.root`` fails
-    before the model is built.
-    """
-
-    def __init__(
-        self,
-        root: str | Path | None,
-        train_split: str = "train_100V",
-        test_split: str = "test_20V",
-        val_instances_per_class: int = 0,
-        image_size: int = 224,
-        batch_size: int = 64,
-        num_workers: int | str | None = 0,
-        pin_memory: bool = False,
-        on_corrupt: str = "fail",
-        seed: int = 0,
-        multiprocessing_context: str | None = None,
-    ):
-        super().__init__()
-        if root is None or str(root) == "":
-            raise ValueError(
-                "dataset.root is not set: point it at the unpacked ModelNet10-SO3 folder (holding "
-                f"train_100V.Rawjpg.lmdb/ ...), e.g. dataset.root=/data/ModelNet10-SO3; get it from {GET_FROM}"
-            )
-        if train_split not in TRAIN_SPLITS:
-            raise ValueError(f"dataset.train_split must be one of {TRAIN_SPLITS}, got {train_split!r}")
-        if test_split not in MODELNET10_SPLITS:
-            raise ValueError(f"dataset.test_split must be one of {MODELNET10_SPLITS}, got {test_split!r}")
-        self.val_instances_per_class = check_int("dataset.val_instances_per_class", val_instances_per_class, 0)
-        self.image_size = check_int("dataset.image_size", image_size, 1)
-        self.batch_size = check_int("dataset.batch_size", batch_size, 1)
-        self.num_workers = num_workers  # an integer >= 0 or "auto" (checked by PoseDataModule)
-        self.multiprocessing_context = multiprocessing_context  # fork, forkserver, spawn or None (checked)
-        if not isinstance(pin_memory, bool):
-            raise ValueError(f"dataset.pin_memory must be true or false, got {pin_memory!r}")
-        self.pin_memory = pin_memory
-        self.on_corrupt = check_corrupt_policy(on_corrupt, "dataset.on_corrupt")
-        if isinstance(seed, bool) or not isinstance(seed, int):
-            raise ValueError(f"dataset.seed must be an integer, got {seed!r}")
-        self.seed = seed
-        self.root = Path(root).expanduser()
-        self.train_split = train_split
-        self.test_split = test_split
-        self.class_names = list(MODELNET10_CLASSES)
-        check_split_files(self.root, [train_split, test_split])
-        for split in dict.fromkeys([train_split, test_split]):
-            _check_lmdb_not_empty(lmdb_dir(self.root, split))
-        self._labels: dict[str, ModelNet10Labels] = {}
-        self.data_train = self.data_val = self.data_test = None
-
-    def labels(self, split: str) -> ModelNet10Labels:
-        """The labels of ``split``, read once."""
-        if split not in self._labels:
-            self._labels[split] = load_modelnet10_labels(lmdb_dir(self.root, split))
-        return self._labels[split]
-
-    def split_instances(self, labels: ModelNet10Labels) -> tuple[np.ndarray, np.ndarray]:
-        """``(train_rows, val_rows)`` of ``labels``: ``val_instances_per_class`` instances of every
-        class (chosen with ``seed``) with all their views go to validation."""
-        rows_of: dict[str, list[int]] = defaultdict(list)
-        for row, instance in enumerate(labels.instances):
-            rows_of[instance].append(row)
-        val_rows: list[int] = []
-        k = self.val_instances_per_class
-        for c, cls in enumerate(MODELNET10_CLASSES):
-            instances = sorted({labels.instances[r] for r in np.flatnonzero(labels.class_index == c)})
-            if not instances or k == 0:
-                continue
-            if k >= len(instances):
-                raise ValueError(
-                    f"dataset.val_instances_per_class={k} leaves no training instances of {cls!r} "
-                    f"({len(instances)} in {labels.path})"
-                )
-            g = torch.Generator().manual_seed(stable_seed("val-split", self.seed, cls))
-            for j in torch.randperm(len(instances), generator=g)[:k].tolist():
-                val_rows += rows_of[instances[j]]
-        is_val = np.zeros(len(labels), dtype=bool)
-        is_val[val_rows] = True
-        return np.flatnonzero(~is_val), np.flatnonzero(is_val)
-
-    def setup(self, stage: str | None = None) -> None:
-        common = dict(root=self.root, image_size=self.image_size, on_corrupt=self.on_corrupt)
-        if stage in (None, "fit", "validate") and self.data_train is None:
-            labels = self.labels(self.train_split)
-            train_rows, val_rows = self.split_instances(labels)
-            self.data_train = ModelNet10Dataset(split=self.train_split, rows=train_rows, labels=labels, **common)
-            if len(val_rows):
-                self.data_val = ModelNet10Dataset(
-                    split=self.train_split, rows=val_rows, return_all=True, labels=labels, **common
-                )
-            log.info(
-                "ModelNet10-SO(3) %s: %d training and %d validation views",
-                self.train_split,
-                len(train_rows),
-                len(val_rows),
-            )
-        if stage in (None, "test") and self.data_test is None:
-            labels = self.labels(self.test_split)
-            self.data_test = ModelNet10Dataset(split=self.test_split, return_all=True, labels=labels, **common)

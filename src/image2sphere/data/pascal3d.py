@@ -1,5 +1,5 @@
 """PASCAL3D+ (release 1.1) with RenderForCNN synthetic images: the Dataset (warping, augmentation, the
-synthetic mix) and the DataModule.
+synthetic mix); the DataModule is in :mod:`image2sphere.data.datamodule`.
 
 The layouts, annotations, object selection and camera conventions are in
 :mod:`image2sphere.data.pascal3d_annotations` (docs/datasets.md#pascal3d-layout).
@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from PIL import ImageOps
 
-from image2sphere.checks import check_int, check_number
+from image2sphere.checks import check_number
 from image2sphere.data.augment import GL_TO_CV, box_to_virtual_camera, hflip_box, hflip_rotation, warp_image
 from image2sphere.data.common import (
     CorruptImageError,
@@ -42,21 +42,13 @@ from image2sphere.data.common import (
     skip_corrupt,
     stable_seed,
 )
-from image2sphere.data.datamodule import PoseDataModule
 from image2sphere.data.loading import EpochDataset, EpochIndex, single_label_item
 from image2sphere.data.pascal3d_annotations import (
-    OBJECT_MODES,
-    PASCAL3D_CLASSES,
     Pascal3DObject,
     SyntheticView,
-    check_classes,
-    check_pascal3d_layout,
-    check_renderforcnn_layout,
-    list_pascal3d_objects,
-    list_renderforcnn,
 )
 
-__all__ = ["DEFAULT_AUGMENT", "Pascal3DDataModule", "Pascal3DDataset", "SyntheticViews"]
+__all__ = ["DEFAULT_AUGMENT", "Pascal3DDataset", "SyntheticViews", "check_augment"]
 
 log = logging.getLogger(__name__)
 
@@ -142,7 +134,7 @@ class Pascal3DDataset(EpochDataset):
         self.synthetic = SyntheticViews(synthetic or ())  # a Sequence[SyntheticView] that pickles cheaply
         check_number("dataset.synthetic_ratio", synthetic_ratio, 0.0)
         self.n_synthetic = round(float(synthetic_ratio) * len(self.real)) if self.synthetic else 0
-        self.augment = _check_augment(augment)
+        self.augment = check_augment(augment)
         self.image_size = int(image_size)
         self.return_all = bool(return_all)
         self.on_corrupt = check_corrupt_policy(on_corrupt, "dataset.on_corrupt")
@@ -208,7 +200,7 @@ class Pascal3DDataset(EpochDataset):
         return single_label_item(torch.from_numpy(pixels), c, i, R, self.return_all)
 
 
-def _check_augment(augment: dict | None) -> dict | None:
+def check_augment(augment: dict | None) -> dict | None:
     if augment is None or augment is False:
         return None
     augment = {**DEFAULT_AUGMENT, **dict(augment)}
@@ -221,117 +213,3 @@ def _check_augment(augment: dict | None) -> dict | None:
         raise ValueError(f"dataset.augment.roll_std_deg must be >= 0, got {augment['roll_std_deg']!r}")
     return {"flip": bool(augment["flip"]), "box_jitter": float(augment["box_jitter"]),
             "roll_std_deg": float(augment["roll_std_deg"])}  # fmt: skip
-
-
-# --------------------------------------------------------------------------------------------------
-# DataModule
-# --------------------------------------------------------------------------------------------------
-
-
-class Pascal3DDataModule(PoseDataModule):
-    """PASCAL3D+ train (real + synthetic, augmented) / validation / test loaders.
-
-    Args:
-        root: the unpacked ``PASCAL3D+_release1.1``.
-        synthetic_root: the RenderForCNN images (``None``: real images only).
-        synthetic_ratio: synthetic images per real image in a training epoch (paper: 3).
-        objects: ``"first"`` or ``"all"`` (see :mod:`image2sphere.data.pascal3d_annotations`).
-        image_size: side of the warped images (224).
-        augment: training augmentation (``{"flip", "box_jitter", "roll_std_deg"}``); ``None``: none.
-        val_per_class: real training images per class held out (chosen with ``seed``) for validation.
-        synthetic_focal: focal length (pixels) assumed for synthetic images.
-        batch_size, num_workers, pin_memory: loader settings; ``num_workers`` an integer or ``"auto"``
-            (see :class:`~image2sphere.data.datamodule.PoseDataModule`).
-        on_corrupt: ``"fail"`` or ``"skip"`` for images that do not decode.
-        seed: seed of the validation split, shuffling, augmentation and synthetic draws.
-        classes: the categories used (default all 12); ``class_index`` is the position in this list.
-        multiprocessing_context: how loader workers start, ``"fork"``, ``"forkserver"`` or ``"spawn"``; ``None``:
-            ``forkserver`` on Linux (see :class:`~image2sphere.data.datamodule.PoseDataModule`).
-    """
-
-    def __init__(
-        self,
-        root: str,
-        synthetic_root: str | None = None,
-        synthetic_ratio: float = 3.0,
-        objects: str = "first",
-        image_size: int = 224,
-        augment: dict | None = DEFAULT_AUGMENT,
-        val_per_class: int = 0,
-        synthetic_focal: float = 3000.0,
-        batch_size: int = 64,
-        num_workers: int | str | None = 0,
-        pin_memory: bool = False,
-        on_corrupt: str = "fail",
-        seed: int = 0,
-        classes: Sequence[str] = PASCAL3D_CLASSES,
-        multiprocessing_context: str | None = None,
-    ):
-        super().__init__()
-        self.classes = check_classes(classes)
-        if objects not in OBJECT_MODES:
-            raise ValueError(f"dataset.objects must be one of {OBJECT_MODES}, got {objects!r}")
-        check_number("dataset.synthetic_ratio", synthetic_ratio, 0.0)
-        check_int("dataset.val_per_class", val_per_class, 0)
-        self.num_workers = num_workers  # an integer >= 0 or "auto" (checked by PoseDataModule)
-        self.multiprocessing_context = multiprocessing_context  # fork, forkserver, spawn or None (checked)
-        check_int("dataset.image_size", image_size, 8)
-        check_int("dataset.batch_size", batch_size, 1)
-        if not check_number("dataset.synthetic_focal", synthetic_focal) > 0:
-            raise ValueError(f"dataset.synthetic_focal must be > 0, got {synthetic_focal!r}")
-        self.augment = _check_augment(augment)
-        self.on_corrupt = check_corrupt_policy(on_corrupt, "dataset.on_corrupt")
-        self.root = Path(root)
-        check_pascal3d_layout(self.root)
-        self.synthetic_root = Path(synthetic_root) if synthetic_root is not None else None
-        if self.synthetic_root is not None:
-            check_renderforcnn_layout(self.synthetic_root)
-        self.synthetic_ratio = float(synthetic_ratio)
-        self.objects = objects
-        self.image_size = int(image_size)
-        self.val_per_class = val_per_class
-        self.synthetic_focal = float(synthetic_focal)
-        self.batch_size = int(batch_size)
-        self.pin_memory = bool(pin_memory)
-        self.seed = int(seed)
-        self.class_names = list(self.classes)
-        self.data_train = self.data_val = self.data_test = None
-
-    def _objects(self, split: str) -> list[Pascal3DObject]:
-        objects, dropped = list_pascal3d_objects(self.root, split, self.objects, self.classes)
-        log.info("PASCAL3D+ %s: %d objects kept; dropped: %s", split, len(objects), dropped or "none")
-        if not objects:
-            raise ValueError(
-                f"PASCAL3D+ {split} split at {self.root} has no usable objects (dropped: {dropped or 'none'}); "
-                "check the download with: python -m image2sphere.data.verify pascal3d " + str(self.root)
-            )
-        return objects
-
-    def setup(self, stage: str | None = None) -> None:
-        common = dict(image_size=self.image_size, on_corrupt=self.on_corrupt, seed=self.seed)
-        if stage in (None, "fit", "validate") and self.data_train is None:
-            objects = self._objects("train")
-            val_images: set[Path] = set()
-            if self.val_per_class:
-                for c in range(len(self.classes)):
-                    images = sorted({o.image for o in objects if o.class_index == c})
-                    g = torch.Generator().manual_seed(stable_seed("val-split", self.seed, c))
-                    pick = torch.randperm(len(images), generator=g)[: self.val_per_class].tolist()
-                    val_images.update(images[k] for k in pick)
-            train = [o for o in objects if o.image not in val_images]
-            synthetic = None
-            if self.synthetic_root is not None and self.synthetic_ratio > 0:
-                synthetic, bad = list_renderforcnn(self.synthetic_root, self.classes)
-                if bad:
-                    log.warning("%d RenderForCNN file names do not parse and are ignored, e.g. %s", len(bad), bad[0])
-                if not synthetic:
-                    raise ValueError(f"no RenderForCNN images found under {self.synthetic_root}")
-                log.info("RenderForCNN: %d synthetic images", len(synthetic))
-            self.data_train = Pascal3DDataset(
-                train, synthetic, self.synthetic_ratio, self.augment, synthetic_focal=self.synthetic_focal, **common
-            )
-            if val_images:
-                val = [o for o in objects if o.image in val_images]
-                self.data_val = Pascal3DDataset(val, return_all=True, **common)
-        if stage in (None, "test") and self.data_test is None:
-            self.data_test = Pascal3DDataset(self._objects("test"), return_all=True, **common)

@@ -1,4 +1,5 @@
-"""SYMSOL, rendered by this project or downloaded: its Dataset and DataModule.
+"""SYMSOL, rendered by this project or downloaded: its Dataset (the DataModule is in
+:mod:`image2sphere.data.datamodule`).
 
 The layout (docs/datasets.md#symsol-layout) and the reading of ``rotations.npz`` are in
 :mod:`image2sphere.data.symsol_labels`; a set is rendered by :mod:`image2sphere.data.render`.
@@ -21,29 +22,26 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from image2sphere.checks import check_int
 from image2sphere.data.common import (
     CorruptImageError,
     check_corrupt_policy,
     load_image,
-    missing_dataset_error,
     normalize_images,
     skip_corrupt,
     stable_seed,
 )
-from image2sphere.data.datamodule import PoseDataModule
 from image2sphere.data.loading import EpochDataset, EpochIndex
-from image2sphere.data.shapes import SYMSOL_I_SHAPES, check_shape_list
-from image2sphere.data.symsol_labels import SYMSOL_DOCS, SYMSOL_URL, load_symsol_rotations
+from image2sphere.data.shapes import check_shape_list
+from image2sphere.data.symsol_labels import load_symsol_rotations
 
-__all__ = ["LABEL_MODES", "SymsolDataModule", "SymsolDataset"]
+__all__ = ["LABEL_MODES", "SymsolDataset", "shape_tuple"]
 
 log = logging.getLogger(__name__)
 
 LABEL_MODES = ("random", "first", "all")
 
 
-def _shape_tuple(shapes: Sequence[str] | str, key: str) -> tuple[str, ...]:
+def shape_tuple(shapes: Sequence[str] | str, key: str) -> tuple[str, ...]:
     """Validated shape names; a single name is accepted for one shape (e.g. ``dataset.shapes=cube``)."""
     return tuple(check_shape_list([shapes] if isinstance(shapes, str) else list(shapes), key))
 
@@ -93,7 +91,7 @@ class SymsolDataset(EpochDataset):
             raise ValueError(f"label must be one of {LABEL_MODES}, got {label!r}")
         self.root = Path(root)
         self.split = split
-        self.shapes = _shape_tuple(shapes, "shapes")
+        self.shapes = shape_tuple(shapes, "shapes")
         self.label = label
         self.return_all = return_all
         self.image_size = int(image_size)
@@ -162,178 +160,3 @@ class SymsolDataset(EpochDataset):
                 j = int(torch.randint(count, (1,), generator=g))
             item["rotation"] = rotations[j].clone()
         return item
-
-
-class SymsolDataModule(PoseDataModule):
-    """SYMSOL train / validation / test loaders.
-
-    Args:
-        root: the dataset root. ``None`` with ``render`` set: a cache directory under
-            ``render_dir`` named after the render parameters.
-        shapes: which shapes, one model for all (SYMSOL I: tet cube icosa cone cyl).
-        shape: a single shape instead of ``shapes`` (SYMSOL II trains one model per marked shape:
-            ``dataset.shape=cylO``).
-        num_views: use only the first this many training images of each shape (``None``: all),
-            e.g. 10000 for the paper's low-data SYMSOL experiment. The validation images are
-            carved from these.
-        val_per_shape: training images per shape held out (chosen with ``seed``) for validation.
-        test_per_shape: use only the first this many test images of each shape.
-        label: the training labels: one per image, a ``"random"`` equivalent (the paper) or the
-            ``"first"``; or ``"all"`` equivalents, whose mean loss is what ``"random"`` optimises in
-            expectation, without the noise of drawing one (docs/training_fidelity.md, "Every SYMSOL shape").
-        image_size: network input size; images are resized when the files differ.
-        batch_size, num_workers, pin_memory: loader settings (evaluation uses the same batch size);
-            ``num_workers`` an integer or ``"auto"`` (see :class:`~image2sphere.data.datamodule.PoseDataModule`).
-        cache_images: decode all images once into memory (fast for small sets; without it the
-            loader workers decode them).
-        seed: seed of the validation split, the shuffling and the label choice.
-        render: if set, a dict of :func:`image2sphere.data.render.render_symsol` arguments
-            (``train``, ``test`` image counts per shape, ``image_size``, ``seed``, ...): the set is
-            rendered once into ``root`` by :meth:`prepare_data` and reused afterwards.
-        render_dir: where rendered sets are cached when ``root`` is ``None``.
-        on_corrupt: ``"fail"`` or ``"skip"`` for images that do not decode.
-        multiprocessing_context: how loader workers start, ``"fork"``, ``"forkserver"`` or ``"spawn"``; ``None``:
-            ``forkserver`` on Linux (see :class:`~image2sphere.data.datamodule.PoseDataModule`).
-    """
-
-    def __init__(
-        self,
-        root: str | None = None,
-        shapes: Sequence[str] | None = SYMSOL_I_SHAPES,
-        shape: str | None = None,
-        num_views: int | None = None,
-        val_per_shape: int = 0,
-        test_per_shape: int | None = None,
-        label: str = "random",
-        image_size: int = 224,
-        batch_size: int = 64,
-        num_workers: int | str | None = 0,
-        pin_memory: bool = False,
-        cache_images: bool = False,
-        seed: int = 0,
-        render: dict | None = None,
-        render_dir: str | None = None,
-        on_corrupt: str = "fail",
-        multiprocessing_context: str | None = None,
-    ):
-        super().__init__()
-        if shape is not None:
-            if shapes is not None and list(_shape_tuple(shapes, "dataset.shapes")) != [shape]:
-                raise ValueError(
-                    f"dataset.shape={shape!r} and dataset.shapes={list(shapes)} disagree: set one of them "
-                    "(dataset.shapes=null with dataset.shape)"
-                )
-            shapes = [shape]
-        if shapes is None:
-            raise ValueError("set dataset.shapes (a list) or dataset.shape (one shape)")
-        self.shapes = _shape_tuple(shapes, "dataset.shapes" if shape is None else "dataset.shape")
-        self.on_corrupt = check_corrupt_policy(on_corrupt, "dataset.on_corrupt")
-        if label not in LABEL_MODES:
-            raise ValueError(f"dataset.label must be one of {LABEL_MODES}, got {label!r}")
-        for key, value in (("num_views", num_views), ("test_per_shape", test_per_shape)):
-            if value is not None:
-                check_int(f"dataset.{key}", value, 1, note=" or null")
-        check_int("dataset.val_per_shape", val_per_shape, 0)
-        check_int("dataset.batch_size", batch_size, 1)
-        self.num_workers = num_workers  # an integer >= 0 or "auto" (checked by PoseDataModule)
-        self.multiprocessing_context = multiprocessing_context  # fork, forkserver, spawn or None (checked)
-        self.render = dict(render) if render is not None else None
-        if root is None:
-            if self.render is None or render_dir is None:
-                raise ValueError(
-                    "dataset.root is not set: point it at a SYMSOL download (the folder holding train/ and "
-                    "test/), e.g. dataset.root=/data/symsol, or set dataset.render to render one"
-                )
-            root = str(Path(render_dir) / self._render_tag())
-        self.root = Path(root)
-        if self.render is None:
-            self._check_present()
-        self.num_views = num_views
-        self.val_per_shape = val_per_shape
-        self.test_per_shape = test_per_shape
-        self.label = label
-        self.image_size = int(image_size)
-        self.batch_size = int(batch_size)
-        self.pin_memory = bool(pin_memory)
-        self.cache_images = bool(cache_images)
-        self.seed = int(seed)
-        self.class_names = list(self.shapes)
-        self.data_train = self.data_val = self.data_test = None
-
-    def _render_tag(self) -> str:
-        """The cache folder's name: every render parameter and the renderer's version, so that a set
-        rendered with other parameters or by another version of the renderer is never reused (nor
-        deleted: it stays in its own folder)."""
-        from image2sphere.data.render import RENDERER_VERSION
-
-        r = dict(self.render)
-        shapes = "-".join(r.pop("shapes", self.shapes))
-        tag = f"{shapes}_{r.pop('image_size', 224)}px_train{r.pop('train')}_test{r.pop('test')}_seed{r.pop('seed', 0)}"
-        output_neutral = ("batch_size", "progress", "png_thread")  # change how, not what, is rendered
-        extra = "".join(f"_{key}{value}" for key, value in sorted(r.items()) if key not in output_neutral)
-        return f"{tag}{extra}_renderer{RENDERER_VERSION}"
-
-    def _check_present(self) -> None:
-        needed = [self.root / split / "rotations.npz" for split in ("train", "test")]
-        needed += [self.root / split / "images" for split in ("train", "test")]
-        if not all(p.exists() for p in needed):
-            missing = [str(p.relative_to(self.root)) for p in needed if not p.exists()] if self.root.is_dir() else []
-            raise missing_dataset_error(
-                "SYMSOL",
-                self.root,
-                "the unzipped symsol_dataset.zip: train/ and test/, each with images/{shape}_{i:05d}.png and "
-                "rotations.npz" + (f" (missing: {', '.join(missing)})" if missing else ""),
-                SYMSOL_URL,
-                "dataset.root",
-                SYMSOL_DOCS,
-            )
-
-    def prepare_data(self) -> None:
-        if self.render is None:
-            self._check_present()
-            return
-        from image2sphere.data.render import render_symsol
-
-        r = dict(self.render)
-        splits = {"train": r.pop("train"), "test": r.pop("test")}
-        r.setdefault("shapes", self.shapes)
-        missing = set(self.shapes) - set(r["shapes"])
-        if missing:
-            raise ValueError(f"dataset.render.shapes lacks {sorted(missing)}, which dataset.shapes uses")
-        render_symsol(self.root, splits=splits, **r)
-
-    def _rows(self, rotations, limit: int | None) -> dict[str, np.ndarray]:
-        return {s: np.arange(min(len(rotations[s][0]), limit or len(rotations[s][0]))) for s in self.shapes}
-
-    def setup(self, stage: str | None = None) -> None:
-        common = dict(
-            root=self.root, shapes=self.shapes, image_size=self.image_size, seed=self.seed, on_corrupt=self.on_corrupt
-        )
-        if stage in (None, "fit", "validate") and self.data_train is None:
-            rotations = load_symsol_rotations(self.root / "train", self.shapes)
-            rows = self._rows(rotations, self.num_views)
-            train_rows, val_rows = {}, {}
-            for s, r in rows.items():
-                if self.val_per_shape >= len(r):
-                    raise ValueError(
-                        f"dataset.val_per_shape={self.val_per_shape} leaves no training images of {s!r} "
-                        f"({len(r)} available)"
-                    )
-                g = torch.Generator().manual_seed(stable_seed("val-split", self.seed, s))
-                perm = r[torch.randperm(len(r), generator=g).numpy()]
-                val_rows[s], train_rows[s] = np.sort(perm[: self.val_per_shape]), np.sort(perm[self.val_per_shape :])
-            self.data_train = SymsolDataset(
-                split="train", rows=train_rows, label=self.label, cache_images=self.cache_images,
-                rotations=rotations, **common,
-            )  # fmt: skip
-            if self.val_per_shape:
-                self.data_val = SymsolDataset(
-                    split="train", rows=val_rows, return_all=True, cache_images=self.cache_images,
-                    rotations=rotations, **common,
-                )  # fmt: skip
-        if stage in (None, "test") and self.data_test is None:
-            rotations = load_symsol_rotations(self.root / "test", self.shapes)
-            self.data_test = SymsolDataset(
-                split="test", rows=self._rows(rotations, self.test_per_shape), return_all=True,
-                cache_images=self.cache_images, rotations=rotations, **common,
-            )  # fmt: skip

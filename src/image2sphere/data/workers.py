@@ -55,9 +55,16 @@ AUTO = "auto"
 START_METHODS = ("fork", "forkserver", "spawn")
 DEFAULT_START_METHOD = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
 # imported once by the fork server, so that its workers find them imported: what unpickling a dataset,
-# the collate function and init_worker needs (image2sphere.data imports every dataset module)
-# (image2sphere.data.fork_server first: it silences runpy's warning when a worker runs the main module again)
-FORKSERVER_PRELOAD = ("image2sphere.data.fork_server", "torch", "numpy", "PIL.Image", "image2sphere.data")
+# the collate function and init_worker needs (image2sphere.data imports every Dataset module, not Lightning),
+# after image2sphere.data.fork_server, which sets the server up (SIGTERM, runpy's warning)
+FORKSERVER_PRELOAD = (
+    "image2sphere.data.fork_server",
+    "torch",
+    "numpy",
+    "PIL.Image",
+    "image2sphere.data",
+    "image2sphere.data.workers",
+)
 
 
 def available_cpus() -> int:
@@ -233,23 +240,3 @@ def _exit_with(pid: int) -> None:
         while _alive(pid):
             time.sleep(1.0)
     os._exit(0)
-
-
-def _protect_fork_server() -> None:
-    """Run when this module is imported by a fork server (:data:`FORKSERVER_PRELOAD`): the server ignores
-    SIGTERM, as multiprocessing's resource tracker does, and the processes it forks get SIGTERM's default
-    back. A SIGTERM sent to the whole process group (``kill -- -pgid``, SLURM's pre-emption) must not end
-    the server under a rank that decides when to stop: its workers would see their parent change and quit
-    (torch's check), and the rank fail on its next batch. The server still ends when its rank and the
-    rank's workers have all ended (its "alive" pipe is then closed), and on SIGKILL."""
-    forkserver = sys.modules.get("multiprocessing.forkserver")
-    frame = sys._getframe(1) if forkserver is not None else None
-    while frame is not None and frame.f_code is not forkserver.main.__code__:
-        frame = frame.f_back
-    if frame is None:
-        return
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    os.register_at_fork(after_in_child=lambda: signal.signal(signal.SIGTERM, signal.SIG_DFL))
-
-
-_protect_fork_server()

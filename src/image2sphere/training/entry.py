@@ -204,10 +204,31 @@ def discard_failed_start(exc: BaseException) -> bool:
     return False
 
 
+LIGHTNING_LOGGERS = ("lightning.pytorch", "lightning.fabric")
+
+
+def lightning_logs_on_their_own() -> None:
+    """Lightning's loggers print to the console through a handler of their own and not through the root
+    logger's, whatever the order of imports. Lightning (2.6) decides this when it is imported: with no handler
+    on the root logger it gives ``lightning.pytorch`` and ``lightning.fabric`` a console handler and stops
+    them from propagating; imported after Hydra has configured the root logger (the entry points import it
+    when a run starts) they propagate, and every message reaches the terminal twice (Hydra's console
+    handler and the ``lightning`` logger's ``INFO:`` one) and the job's log file. This sets the first
+    arrangement, which runs have always shown."""
+    for name in LIGHTNING_LOGGERS:
+        logger = logging.getLogger(name)
+        if not logger.handlers:
+            logger.addHandler(logging.StreamHandler())
+        logger.setLevel(logging.INFO)
+        logger.propagate = False
+
+
 @contextlib.contextmanager
 def entry_point() -> Iterator[None]:
     """Run an entry point's task: a refused value prints one line and exits with status 1 (a failed job in a
-    multirun), and a start that failed before writing anything leaves no directory (see the module docstring)."""
+    multirun), and a start that failed before writing anything leaves no directory (see the module docstring).
+    Lightning's messages keep their own console line (:func:`lightning_logs_on_their_own`)."""
+    lightning_logs_on_their_own()
     try:
         yield
     except Exception as exc:

@@ -62,3 +62,24 @@ def test_training_loss_falls_when_overfitting_a_few_images(tmp_path, model, imag
     # regression's mean squared error
     margin = 0.25 * first if model in POINT_REGRESSORS | {"wigner_regression"} else 0.5
     assert last < first - margin, (model, first, last)
+
+
+@pytest.mark.slow
+def test_every_method_refuses_labels_of_another_batch_with_one_message(tmp_path, images_and_rotations):
+    """One rule for a training label (image2sphere.rotation_sets.check_labels): every method's loss refuses
+    ``rotation`` of another shape than ``(B, 3, 3)`` with the same message, before it computes anything."""
+    images, rotations = images_and_rotations
+    wrong = {}
+    for model in METHODS:
+        overrides = [f"model={model}", "lmax=2", "train_grid_level=2", "encoder=resnet18", "dataset.image_size=32"]
+        net = instantiate(compose_cfg(tmp_path / model, overrides + SMALL.get(model, [])).model.net)
+        output = net(images[:2])
+        for bad in (rotations[:3], rotations[:2, :2], rotations[0]):
+            expected = f"rotation must have shape (2, 3, 3), got {tuple(bad.shape)}"
+            try:
+                net.loss(output, bad, 2)
+                wrong[model, tuple(bad.shape)] = "nothing raised"
+            except Exception as e:  # noqa: BLE001 (any other error is a finding too)
+                if not isinstance(e, ValueError) or str(e) != expected:
+                    wrong[model, tuple(bad.shape)] = f"{type(e).__name__}: {e}"
+    assert wrong == {}, "\n".join(f"{k}: {v[:150]}" for k, v in wrong.items())

@@ -19,7 +19,7 @@ from image2sphere.metrics import (
     spread_deg,
     summarize_pose_metrics,
 )
-from image2sphere.nn.base import check_rotation_set
+from image2sphere.rotation_sets import check_rotation_set
 from image2sphere.so3 import (
     dense_grid_logits,
     n_so3_coeffs,

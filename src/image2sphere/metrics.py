@@ -5,7 +5,7 @@ Conventions
 * Ground truth is a padded set of equivalent rotations per image: ``targets (B, M, 3, 3)`` with a
   boolean ``mask (B, M)`` marking the real entries (a symmetric object has several rotations that
   give the same image; an asymmetric one has ``M = 1``). ``targets[:, 0]`` is always real
-  (:func:`check_target_mask`).
+  (:func:`~image2sphere.rotation_sets.check_target_mask`).
 * Angular error of a point estimate: the geodesic angle to the nearest equivalent rotation, in
   degrees. Acc@t is the fraction of images with error <= t degrees.
 * Log likelihood: the model's log density (Haar measure of volume pi^2, read at the grid point
@@ -39,6 +39,7 @@ from image2sphere.data.common import stable_seed
 from image2sphere.distributions.base import LOG_UNIFORM_DENSITY, PoseDistribution
 from image2sphere.distributions.hdr_masses import tie_tolerance
 from image2sphere.precision import constant_cache
+from image2sphere.rotation_sets import check_target_mask, check_targets, fill_padding
 from image2sphere.so3.grid import check_level, so3_grid_size, so3_healpix_grid, so3_healpix_nearest_index
 from image2sphere.so3.rotations import geodesic_distance_deg
 
@@ -66,49 +67,6 @@ ACC_THRESHOLDS_DEG = (15.0, 30.0)
 HDR_LEVELS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
 #: the metric key of each level's coverage: ``hdr_coverage_10`` ... ``hdr_coverage_90``
 HDR_COVERAGE_KEYS = tuple(f"hdr_coverage_{round(100 * a)}" for a in HDR_LEVELS)
-
-
-def check_targets(targets: torch.Tensor, mask: torch.Tensor | None, batch: int | None = None) -> torch.Tensor:
-    """Validate ``targets (B, M, 3, 3)`` and return the mask ``(B, M)`` (all real when ``None``; else bool and
-    passing :func:`check_target_mask`)."""
-    if targets.ndim != 4 or targets.shape[-2:] != (3, 3) or targets.shape[1] < 1:
-        raise ValueError(f"targets must have shape (B, M, 3, 3) with M >= 1, got {tuple(targets.shape)}")
-    if batch is not None and targets.shape[0] != batch:
-        raise ValueError(f"targets must have batch size {batch}, got {tuple(targets.shape)}")
-    if mask is None:
-        return torch.ones(targets.shape[:2], dtype=torch.bool, device=targets.device)
-    if mask.shape != targets.shape[:2] or mask.dtype != torch.bool:
-        raise ValueError(f"mask must be bool of shape {tuple(targets.shape[:2])}, got {tuple(mask.shape)} {mask.dtype}")
-    return check_target_mask(mask)
-
-
-def check_target_mask(mask: torch.Tensor) -> torch.Tensor:
-    """``mask (B, M)`` of a padded target set if every image's first target is real, else ``ValueError``.
-
-    The one rule on where padding may sit, for :func:`check_targets` (metrics, evaluation) and
-    :func:`~image2sphere.nn.base.check_rotation_set` (the set losses): ``targets[:, 0]`` must be real,
-    the other entries may be real or padding in any order. Every loader builds such masks: the first
-    entry is the rendering rotation (``arange(M) < count`` with ``count >= 1`` for SYMSOL, all True for
-    one-label sets). A first entry that is padding is refused rather than repaired (say by filling
-    padding from each image's first real entry) because ``targets[:, 0]`` is read on its own elsewhere too
-    (the validation step's one-label loss, :mod:`image2sphere.training.module`), not only by
-    :func:`fill_padding`, which copies it into the padding: a padded first entry (possibly NaN) would be
-    read as a rotation, giving a NaN loss or metric or an error far from its cause.
-    """
-    if not mask.any(1).all():
-        raise ValueError("every image needs at least one real rotation in mask")
-    if not mask[:, :1].all():
-        raise ValueError(
-            "mask[:, 0] must be True: the first target of every image is its rendering rotation, "
-            "and padding is read as it; put a real rotation first in every image's set"
-        )
-    return mask
-
-
-def fill_padding(targets: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """``targets (B, M, 3, 3)`` with the padding entries (possibly NaN) replaced by the image's first target,
-    so they can be read safely; ``mask (B, M)`` must pass :func:`check_target_mask` (the first target real)."""
-    return torch.where(mask[..., None, None], targets, targets[:, :1].expand_as(targets))
 
 
 def min_angular_error_deg(pred: torch.Tensor, targets: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:

@@ -46,7 +46,8 @@ import torch
 
 from image2sphere.checks import check_int, check_number
 from image2sphere.distributions.base import LOG_UNIFORM_DENSITY, PoseDistribution, check_temperature
-from image2sphere.metrics import HDR_LEVELS, check_targets, density_pairs, fill_padding, hdr_coverage_counts
+from image2sphere.metrics import HDR_LEVELS, density_pairs, hdr_coverage_counts
+from image2sphere.rotation_sets import check_targets, fill_padding
 from image2sphere.so3.grid import MAX_DENSE_LEVEL, check_level, so3_grid_size, so3_healpix_nearest_index
 
 __all__ = [

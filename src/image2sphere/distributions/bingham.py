@@ -49,6 +49,7 @@ import torch.nn.functional as F
 
 from image2sphere.checks import check_int
 from image2sphere.distributions.base import PoseDistribution, check_num_components
+from image2sphere.rotation_sets import check_labels
 from image2sphere.so3.rotations import (
     check_rotation_matrix,
     matrix_to_quaternion_outer,
@@ -316,7 +317,6 @@ def bingham_nll(dist_or_output: Bingham | torch.Tensor, rotation: torch.Tensor, 
     dist = dist_or_output
     if not isinstance(dist, Bingham):
         dist = Bingham.from_output(dist_or_output, num_components)
+    check_labels(rotation, dist.batch_size)
     check_rotation_matrix(rotation, "rotation", atol=1e-3)
-    if rotation.shape != (dist.batch_size, 3, 3):
-        raise ValueError(f"rotation must have shape (B, 3, 3) = {(dist.batch_size, 3, 3)}, got {tuple(rotation.shape)}")
     return -dist.unnormalized_log_density(rotation[:, None].to(dist.dtype))[:, 0]

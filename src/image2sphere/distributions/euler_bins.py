@@ -40,6 +40,7 @@ import torch
 
 from image2sphere.checks import check_int
 from image2sphere.distributions.base import PoseDistribution, check_temperature
+from image2sphere.rotation_sets import check_labels
 from image2sphere.so3.rotations import aet_to_matrix, check_rotation_matrix, matrix_to_aet_biternions
 
 __all__ = ["EulerBins", "check_num_bins", "elevation_bin_log_volumes", "euler_bin_index", "euler_bins_nll"]
@@ -170,8 +171,7 @@ class EulerBins(PoseDistribution):
 
 def euler_bins_nll(output: torch.Tensor, rotation: torch.Tensor, num_bins: int) -> torch.Tensor:
     """Negative log density ``(B,)`` of ``rotation (B, 3, 3)`` under the network output ``(B, 3 * num_bins)``."""
+    check_labels(rotation, len(output))
     check_rotation_matrix(rotation, "rotation", atol=1e-3)
-    if rotation.shape != (len(output), 3, 3):
-        raise ValueError(f"rotation must have shape ({len(output)}, 3, 3), got {tuple(rotation.shape)}")
     dist = EulerBins.from_output(output, num_bins)
     return -dist.unnormalized_log_density(rotation[:, None].to(output.dtype))[:, 0]

@@ -27,6 +27,7 @@ from e3nn import o3
 
 from image2sphere.checks import check_int
 from image2sphere.distributions.base import PoseDistribution, check_temperature
+from image2sphere.rotation_sets import check_target_mask, fill_padding
 from image2sphere.so3.grid import (
     MAX_DENSE_LEVEL,
     check_level,
@@ -56,10 +57,8 @@ def fourier_grid_set_nll(
 ) -> torch.Tensor:
     """:func:`fourier_grid_nll` averaged over each image's equivalent rotations ``(B,)``: ``rotations
     (B, M, 3, 3)``, real where ``mask (B, M)`` (the first of each image among them,
-    :func:`~image2sphere.metrics.check_target_mask`); ``logsumexp_i f(R_i) - mean_k f(R_k)`` with the grid
+    :func:`~image2sphere.rotation_sets.check_target_mask`); ``logsumexp_i f(R_i) - mean_k f(R_k)`` with the grid
     point nearest each ``R_k``. The normaliser is computed once per image, not once per rotation."""
-    from image2sphere.metrics import check_target_mask, fill_padding  # here: metrics imports this package
-
     check_target_mask(mask)
     B, M = mask.shape
     ev = get_grid_evaluator(lmax, check_streamed_level(level), coeffs.dtype, coeffs.device)

@@ -36,6 +36,7 @@ original I2S research code's input) before its encoder sees them: :meth:`Float32
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import torch
@@ -45,8 +46,8 @@ from image2sphere.checks import check_int
 from image2sphere.data.common import IMAGENET_MEAN, IMAGENET_STD
 from image2sphere.distributions.base import PoseDistribution
 from image2sphere.distributions.fourier import SO3Distribution, fourier_grid_nll
-from image2sphere.metrics import check_target_mask
 from image2sphere.precision import encoder_autocast, float32_methods, float32_region, to_float32
+from image2sphere.rotation_sets import check_labels, check_rotation_set
 
 __all__ = ["INPUT_SCALINGS", "Float32Head", "PoseNetwork", "check_input_scaling", "method_of", "unscale_imagenet"]
 
@@ -120,6 +121,14 @@ class PoseNetwork(Float32Head):
 
     FLOAT32_METHODS = (*Float32Head.FLOAT32_METHODS, "set_loss")
 
+    def __init_subclass__(cls, **kwargs):
+        """Every method's own :meth:`loss` refuses a label of another shape than ``(B, 3, 3)`` with one
+        message (:func:`~image2sphere.rotation_sets.check_labels`) before it computes anything."""
+        super().__init_subclass__(**kwargs)
+        loss = vars(cls).get("loss")
+        if loss is not None:
+            cls.loss = _labels_checked(loss)
+
     def __init__(
         self,
         encoder: nn.Module,
@@ -185,16 +194,16 @@ class PoseNetwork(Float32Head):
         return self.output_distribution(self(images, class_index))
 
 
-def check_rotation_set(output: torch.Tensor, rotations: torch.Tensor, mask: torch.Tensor) -> None:
-    """``ValueError`` unless ``rotations (B, M, 3, 3)`` and ``mask (B, M)`` match the ``B`` rows of ``output``
-    and every image's first rotation is real (:func:`~image2sphere.metrics.check_target_mask`, the rule of
-    the metrics too): the arguments of :meth:`PoseNetwork.set_loss`."""
-    if mask.ndim != 2 or rotations.shape != (*mask.shape, 3, 3) or len(output) != len(mask):
-        raise ValueError(
-            f"rotations (B, M, 3, 3) and mask (B, M) must match the output's batch of {len(output)}, "
-            f"got {tuple(rotations.shape)} and {tuple(mask.shape)}"
-        )
-    check_target_mask(mask)
+def _labels_checked(loss: Callable[..., torch.Tensor]) -> Callable[..., torch.Tensor]:
+    """``loss(self, output, rotation, ...)`` that first checks ``rotation`` against the ``B`` rows of
+    ``output`` (:meth:`PoseNetwork.__init_subclass__`)."""
+
+    @functools.wraps(loss)
+    def checked(self, output: torch.Tensor, rotation: torch.Tensor, *args, **kwargs) -> torch.Tensor:
+        check_labels(rotation, len(output))
+        return loss(self, output, rotation, *args, **kwargs)
+
+    return checked
 
 
 def mean_loss_over_set(

@@ -405,8 +405,6 @@ class IcosahedralI2S(PoseNetwork):
         """Anchor cross-entropy plus ``residual_weight`` times the rotation loss of the label's anchor,
         per image ``(B,)``; ``grid_level`` is unused."""
         output = self._check_output(output)
-        if rotation.shape != (len(output), 3, 3):
-            raise ValueError(f"rotation must have shape ({len(output)}, 3, 3), got {tuple(rotation.shape)}")
         rotation = rotation.to(output.dtype)
         target = self.nearest_anchor(rotation.detach())  # [B]
         ce = F.cross_entropy(output[:, 0], target, reduction="none")

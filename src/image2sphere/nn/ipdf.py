@@ -37,6 +37,7 @@ from image2sphere.checks import check_int
 from image2sphere.distributions.base import LOG_UNIFORM_DENSITY
 from image2sphere.distributions.implicit import ImplicitDistribution
 from image2sphere.nn.base import Float32Head
+from image2sphere.rotation_sets import check_labels
 from image2sphere.so3.grid import so3_grid_size, so3_healpix_grid
 from image2sphere.so3.rotations import random_rotations
 
@@ -193,10 +194,8 @@ class IPDF(Float32Head):
 
         ``grid_level`` is accepted for the interface every pose network shares and is not used: the
         normalisation comes from :attr:`n_queries` query rotations (:meth:`train_queries`)."""
+        check_labels(rotation, len(features))  # a head, not a PoseNetwork: its own check
         distribution = self.output_distribution(features)
-        if not isinstance(rotation, torch.Tensor) or rotation.shape != (len(features), 3, 3):
-            shape = tuple(rotation.shape) if isinstance(rotation, torch.Tensor) else type(rotation).__name__
-            raise ValueError(f"rotation must have shape ({len(features)}, 3, 3), got {shape}")
         queries = self.train_queries(features.dtype, features.device)  # [n, 3, 3]
         true = distribution.unnormalized_log_density(rotation[:, None])  # [B, 1]
         others = distribution.unnormalized_log_density(queries)  # [B, n]

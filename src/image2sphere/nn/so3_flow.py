@@ -79,7 +79,8 @@ from torch import nn
 from image2sphere.checks import check_int
 from image2sphere.distributions.base import LOG_UNIFORM_DENSITY
 from image2sphere.distributions.flow import FlowDistribution
-from image2sphere.nn.base import PoseNetwork, check_rotation_set
+from image2sphere.nn.base import PoseNetwork
+from image2sphere.rotation_sets import check_rotation_set, fill_padding
 from image2sphere.so3.rotations import matrix_to_quaternion, quaternion_to_matrix, random_rotations
 
 __all__ = ["MobiusCoupling", "QuaternionAffine", "RotationFlow", "SO3Flow", "mobius_circle"]
@@ -558,9 +559,6 @@ class RotationFlow(PoseNetwork):
 
     def loss(self, output: torch.Tensor, rotation: torch.Tensor, grid_level: int | None = None) -> torch.Tensor:
         """The negative log likelihood ``(B,)`` of ``rotation (B, 3, 3)``, exact (``grid_level`` unused)."""
-        if not isinstance(rotation, torch.Tensor) or rotation.shape != (len(output), 3, 3):
-            shape = tuple(rotation.shape) if isinstance(rotation, torch.Tensor) else type(rotation).__name__
-            raise ValueError(f"rotation must have shape ({len(output)}, 3, 3), got {shape}")
         return -self.flow.log_prob(output, rotation[:, None])[:, 0]
 
     def set_loss(
@@ -570,7 +568,5 @@ class RotationFlow(PoseNetwork):
         where ``mask (B, M)``: one batched pass of the flow for every rotation of the set."""
         check_rotation_set(output, rotations, mask)
         real = mask.to(output)
-        from image2sphere.metrics import fill_padding  # here: metrics imports the nn package's users
-
         log_p = self.flow.log_prob(output, fill_padding(rotations, mask).to(output))  # [B, M]
         return -(log_p * real).sum(1) / real.sum(1)

@@ -31,8 +31,8 @@ import math
 import torch
 
 from image2sphere.distributions.fourier import fourier_grid_nll, fourier_grid_set_nll
-from image2sphere.nn.base import check_rotation_set
 from image2sphere.nn.i2s import I2S
+from image2sphere.rotation_sets import check_rotation_set, fill_padding
 from image2sphere.so3.wigner import check_lmax, flat_wigner, so3_layout
 
 __all__ = ["WignerDRegression", "wigner_mse", "wigner_target"]
@@ -79,9 +79,6 @@ class WignerDRegression(I2S):
 
     def loss(self, output: torch.Tensor, rotation: torch.Tensor, grid_level: int) -> torch.Tensor:
         """``regression_weight * MSE(c, D(R)) + distribution_weight * I2S's cross-entropy``, ``(B,)``."""
-        if not isinstance(rotation, torch.Tensor) or rotation.shape != (len(output), 3, 3):
-            shape = tuple(rotation.shape) if isinstance(rotation, torch.Tensor) else type(rotation).__name__
-            raise ValueError(f"rotation must have shape ({len(output)}, 3, 3), got {shape}")
         target = wigner_target(self.lmax, rotation.detach().to(output))  # [B, n]
         loss = self.regression_weight * wigner_mse(output, target)
         if self.distribution_weight:
@@ -95,8 +92,6 @@ class WignerDRegression(I2S):
         the targets of the whole set at once (and one grid normaliser per image)."""
         check_rotation_set(output, rotations, mask)
         real = mask.to(output)
-        from image2sphere.metrics import fill_padding  # here: metrics imports this package's users
-
         target = wigner_target(self.lmax, fill_padding(rotations, mask).detach().to(output))  # [B, M, n]
         mse = (wigner_mse(output[:, None], target) * real).sum(1) / real.sum(1)  # [B]
         loss = self.regression_weight * mse

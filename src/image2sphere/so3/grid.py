@@ -28,6 +28,7 @@ from image2sphere.checks import check_int
 from image2sphere.so3.rotations import angles_to_matrix, check_rotation_matrix, rotvec_to_matrix
 
 __all__ = [
+    "check_grid_levels",
     "MAX_DENSE_LEVEL",
     "MAX_LEVEL",
     "MAX_STREAMED_LEVEL",
@@ -90,6 +91,21 @@ def check_level(
             detail += f"; the allowed levels are 0..{max_level}"
         raise ValueError(f"{name}={level} is too fine{detail}")
     return level
+
+
+def check_grid_levels(prefix: str = "model.", **levels: int) -> None:
+    """Refuse the grid levels of a training or evaluation run that it could not evaluate on, naming each key
+    (``prefix`` + the keyword): a ``*spread_grid_level`` up to :data:`MAX_DENSE_LEVEL` (the spread sums one
+    value per grid point), every other level up to :data:`MAX_STREAMED_LEVEL` (streamed evaluation).
+
+    Called by :class:`~image2sphere.training.module.PoseEstimationModule` and, before any data is read or
+    rendered, by the training run's config check (:func:`image2sphere.training.run_config.check_train_config`).
+    """
+    for key, level in levels.items():
+        if key.endswith("spread_grid_level"):
+            check_level(level, name=f"{prefix}{key}", max_level=MAX_DENSE_LEVEL, purpose="the spread's dense grid")
+        else:
+            check_level(level, name=f"{prefix}{key}", max_level=MAX_STREAMED_LEVEL, purpose="streamed evaluation")
 
 
 def so3_grid_size(level: int) -> tuple[int, int]:

@@ -59,9 +59,7 @@ from image2sphere.nn.base import method_of, set_loss_of
 from image2sphere.precision import float32_region
 from image2sphere.recalibration import Recalibration, ScoredPairs, fit_temperature
 from image2sphere.so3.grid import (
-    MAX_DENSE_LEVEL,
-    MAX_STREAMED_LEVEL,
-    check_level,
+    check_grid_levels,
     so3_grid_size,
     so3_healpix_index_to_matrix,
 )
@@ -118,7 +116,7 @@ class PoseEstimationModule(pl.LightningModule):
         methods = method_of(net)  # ValueError for a network that is not a pose network
         if scheduler_interval not in ("epoch", "step"):
             raise ValueError(f"model.scheduler_interval must be 'epoch' or 'step', got {scheduler_interval!r}")
-        self.check_grid_levels(
+        check_grid_levels(
             train_grid_level=train_grid_level,
             val_grid_level=val_grid_level,
             eval_grid_level=eval_grid_level,
@@ -145,20 +143,6 @@ class PoseEstimationModule(pl.LightningModule):
         self.run_config: dict | None = None  # the resolved Hydra config, stored in checkpoints
         self.recalibration: Recalibration | None = None  # the fitted temperature (fit_recalibration)
         self.use_recalibration = True  # distribution() applies it
-
-    @staticmethod
-    def check_grid_levels(prefix: str = "model.", **levels: int) -> None:
-        """Refuse grid levels this module cannot evaluate on, naming the key (streamed work up to level 7, the
-        spread's dense grid up to level 6).
-
-        Called by the constructor and, before any data is read or rendered, by the training run's
-        config check (:func:`image2sphere.training.run_config.check_train_config`).
-        """
-        for key, level in levels.items():
-            if key.endswith("spread_grid_level"):  # the spread sums one value per grid point
-                check_level(level, name=f"{prefix}{key}", max_level=MAX_DENSE_LEVEL, purpose="the spread's dense grid")
-            else:
-                check_level(level, name=f"{prefix}{key}", max_level=MAX_STREAMED_LEVEL, purpose="streamed evaluation")
 
     # ------------------------------------------------------------------ forward
     def forward(self, images: torch.Tensor, class_index: torch.Tensor | None = None) -> torch.Tensor:

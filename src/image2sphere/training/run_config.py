@@ -39,6 +39,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from image2sphere.checks import check_int
 from image2sphere.data.workers import check_num_workers
+from image2sphere.so3.grid import check_grid_levels
 
 __all__ = [
     "RENAMED_KEYS",
@@ -105,10 +106,8 @@ def _int_at_least(cfg: DictConfig, key: str, minimum: int, allow_null: bool = Fa
 
 
 def _check_levels(cfg: DictConfig, keys: list[str]) -> None:
-    from image2sphere.training.module import PoseEstimationModule
-
     levels = {key: OmegaConf.select(cfg, key) for key in keys if OmegaConf.select(cfg, key) is not None}
-    PoseEstimationModule.check_grid_levels(prefix="", **levels)
+    check_grid_levels(prefix="", **levels)
 
 
 def check_choice(cfg: DictConfig, key: str, choices: tuple[str, ...], default: str) -> str:

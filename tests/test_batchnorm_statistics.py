@@ -184,4 +184,18 @@ def test_two_ranks_average_their_shares_to_the_one_process_mean():
     a, b = single.encoder.norm, rank0.encoder.norm
     torch.testing.assert_close(b.running_mean, a.running_mean, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(b.running_var, a.running_var, rtol=0.2, atol=0.0)
+    # the reduced variance exactly: each rank's mean of its batches' unbiased variances (BatchNorm's cumulative
+    # average), then the mean over the two ranks, computed here from the layer's input
+    per_rank = []
+    for r in (0, 1):
+        order = EpochShuffleSampler(N_IMAGES, 3, None, None, 2, r)
+        order.epoch = 2
+        indices = list(iter(order))[:8]
+        with torch.no_grad():
+            variances = [
+                net.encoder.conv(torch.stack([items[i]["image"] for i in indices[k : k + 4]])).var(dim=(0, 2, 3))
+                for k in (0, 4)
+            ]  # [channels] each, unbiased
+        per_rank.append(torch.stack(variances).mean(0))
+    torch.testing.assert_close(b.running_var, (per_rank[0] + per_rank[1]) / 2, rtol=1e-12, atol=1e-12)
     assert not torch.equal(rank1.encoder.norm.running_mean, b.running_mean)  # rank 1 alone saw other images

@@ -15,6 +15,7 @@ import pytest
 import torch
 from e3nn import o3
 from scipy.stats import chi2_contingency
+from torch import nn
 
 from conftest import haar_rotations
 from image2sphere.distributions.base import LOG_UNIFORM_DENSITY
@@ -193,6 +194,24 @@ def test_flow_layers_invert_exactly_and_start_as_the_identity():
     R, log_det = fresh.transform(z, R0)
     torch.testing.assert_close(R, R0)
     torch.testing.assert_close(fresh.log_prob(z, R0), torch.full((3, 6), LOG_UNIFORM_DENSITY, dtype=torch.float64))
+
+
+def test_affine_layer_ignores_the_trace_of_its_matrix_so_a_large_one_cannot_overflow():
+    """Quick. ``q -> W q / |W q|`` divides out any scale of ``W = exp(A)``: adding ``t I`` to ``A`` gives the same
+    rotations and the same log Jacobian. With ``t = 1000`` the full ``exp(A)`` overflows float64 (``e^1000``);
+    the layer, which drops the trace, stays finite and equal to the layer without it."""
+    torch.manual_seed(0)
+    layer = QuaternionAffine(5).double()
+    nn.init.normal_(layer.to_matrix.weight, std=0.3)
+    z, R0 = torch.randn(2, 5, dtype=torch.float64), haar_rotations(7, seed=3).expand(2, 7, 3, 3)
+    plain = [layer(R0, z), layer.inverse(R0, z)]
+    with torch.no_grad():
+        layer.to_matrix.bias += 1000 * torch.eye(4, dtype=torch.float64).flatten()
+    assert not torch.isfinite(torch.linalg.matrix_exp(layer.to_matrix(z).reshape(-1, 4, 4))).all()
+    for (R, log_det), (R_plain, log_det_plain) in zip([layer(R0, z), layer.inverse(R0, z)], plain, strict=True):
+        assert torch.isfinite(R).all() and torch.isfinite(log_det).all()
+        torch.testing.assert_close(R, R_plain)
+        torch.testing.assert_close(log_det, log_det_plain)
 
 
 def _binned(R: torch.Tensor) -> torch.Tensor:

@@ -30,7 +30,9 @@ Conventions (docs/conventions.md#densities)
   ``q -> W q / |W q|`` (well defined on rotations: ``-q`` maps to minus the image), ``W = exp(A)`` with
   ``A`` ``4 x 4`` from ``z``, so ``W`` is always invertible, ``det W = exp(tr A)`` and
   ``W^{-1} = exp(-A)``. Its Jacobian on S^3, hence w.r.t. the Haar measure (S^3 covers SO(3) twice,
-  evenly), is ``det W / |W q|^4``.
+  evenly), is ``det W / |W q|^4``. A multiple of the identity in ``A`` only scales ``W``, which the map
+  divides out, so ``A`` is taken traceless (its trace removed): the same family of maps, ``det W = 1``,
+  and no ``exp(tr A)`` to overflow.
 * ``start="identity"`` (the default): every layer starts as the identity (its last linear layer at
   zero), so the first prediction is the uniform distribution, as I2S's. ``start="random"``: PyTorch's
   default initialisation of those layers too, as in the authors' code, so the flow starts as a random
@@ -406,6 +408,8 @@ class QuaternionAffine(nn.Module):
         """As :meth:`MobiusCoupling.map_quaternions`, on ``q (4, B, K)`` or ``(4, K)`` (the same rotations for
         every condition): ``(4, B, K)`` and ``log |det J| (B, K)``. ``buffers``: as the coupling's."""
         A = self.to_matrix(z).reshape(-1, 4, 4)  # [B, 4, 4]
+        # traceless: exp(A - t I) = exp(-t) exp(A) is the same map q -> W q / |W q|, with det W = 1
+        A = A - A.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None] * torch.eye(4, dtype=A.dtype, device=A.device)
         if inverse:
             A = -A
         W = torch.linalg.matrix_exp(A)
@@ -415,7 +419,7 @@ class QuaternionAffine(nn.Module):
         else:  # kept buffers, as the couplings'
             Wq = torch.bmm(W, q_images, out=buffers.affine).transpose(0, 1)
         sq = torch.addcmul(Wq[0] * Wq[0], Wq[1], Wq[1]).addcmul_(Wq[2], Wq[2]).addcmul_(Wq[3], Wq[3])  # |W q|^2
-        log_det = A.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None] - 2 * sq.log()  # log det W - 4 log |W q|
+        log_det = -2 * sq.log()  # log det W - 4 log |W q|, det W = 1  # [B, K]
         if buffers is None:
             return (Wq * sq.rsqrt()).contiguous(), log_det
         return torch.mul(Wq, sq.rsqrt(), out=buffers.output_for(q).view(Wq.shape)), log_det

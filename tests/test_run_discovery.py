@@ -89,7 +89,7 @@ def test_a_resumed_run_is_read_as_what_it_trained(tmp_path):
     _, resume = origin_and_resume(tmp_path, ["trainer.max_epochs=3"], {"lmax": 4, "trainer": {"max_epochs": 3}})
     (run,), unfinished = find_runs([tmp_path / "resumed"])
     assert unfinished == []
-    assert run.get("lmax") == 4 and run.get("model.net.lmax") == "${lmax}"  # resumed_config.yaml, not lmax 6
+    assert run.get("lmax") == 4 and run.get("model.net.lmax") == 4  # resumed_config.yaml's, not lmax 6; resolved
     assert run.get("table") == "small/table7" and run.get("logger") == "csv"  # the original's choices, its own logger
     assert run.get("hydra/sweeper") == "basic"  # Hydra's own groups are the resumed run's
     # the original's overrides, plus the one that changed a value; ckpt_path is none
@@ -136,6 +136,42 @@ def test_a_resume_whose_original_is_gone_keeps_its_values_and_says_what_is_unkno
     assert tables_main([str(tmp_path / "resumed"), "--table", "table7", "--out", str(tmp_path / "out")]) == 0
     err = capsys.readouterr().err
     assert f"note: {tmp_path / 'resumed'}: resumed from {ckpt}" in err
+
+
+def test_a_resume_whose_original_is_unreadable_says_so(tmp_path):
+    """Quick. The original run directory is there but its ``.hydra/config.yaml`` is not YAML: the note says the
+    directory is unreadable (and which), not that no directory holds the checkpoint."""
+    origin, resume = origin_and_resume(tmp_path, ["trainer.max_epochs=3"], {"lmax": 4, "trainer": {"max_epochs": 3}})
+    (origin / ".hydra" / "config.yaml").write_text("lmax: [unclosed\n")
+    (run,), _ = find_runs([resume])
+    (note,) = run.notes
+    assert f"{origin}, is unreadable" in note and "no run directory" not in note, note
+    assert run.get("table") is None and run.get("lmax") == 4  # unknown choices; its own values
+
+
+@pytest.mark.parametrize(("override", "key"), [
+    ("+a.b=1", "a.b"), ("++a.b=1", "a.b"), ("~trainer.devices", "trainer.devices"), ("dataset=symsol1", "dataset"),
+    ("dataset@data=symsol1", "dataset"), ("hydra/sweeper=table", "hydra/sweeper"), ("seed=0,1", "seed"),
+    ("model.net.tags=[a,b]", "model.net.tags"), ("key='a=b'", "key"), ("not an override", "not an override"),
+])  # fmt: skip
+def test_override_keys_are_hydras(override, key):
+    """Quick. The key or group an override sets, as Hydra's own parser reads it (``@package`` left out)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from image2sphere.config_text import override_key
+
+    assert override_key(override) == key
+    if key != override:  # a text Hydra parses: the same key as Hydra's parser gives
+        assert OverridesParser.create().parse_override(override).key_or_group == key
+
+
+def test_config_values_follow_every_interpolation_omegaconf_resolves(tmp_path):
+    """Quick. A run's config value is OmegaConf's: a plain ``${key}``, one inside a string, one through
+    ``oc.select``; one of a resolver that only a running job has (``${hydra:...}``) reads as absent."""
+    config = {"lmax": 4, "name": "l${lmax}", "alias": "${oc.select:lmax,0}", "out": "${hydra:runtime.output_dir}"}
+    (run,), _ = find_runs([write_run(tmp_path / "run", config, [])])
+    assert (run.get("name"), run.get("alias"), run.get("out", "absent")) == ("l4", 4, "absent")
+    assert run.get("model.net") == {"lmax": 4}
 
 
 def test_two_resumed_sweep_jobs_differ_in_lmax_not_in_ckpt_path(tmp_path):

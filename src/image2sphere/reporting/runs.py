@@ -34,13 +34,14 @@ from __future__ import annotations
 import json
 import math
 import os
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import yaml
+from omegaconf import DictConfig, OmegaConf
 
+from image2sphere.config_text import config_value, override_key
 from image2sphere.loop_progress import batches_done_in_epoch, epoch_resumed_in, has_loop_state
 
 __all__ = [
@@ -65,7 +66,6 @@ OWN_GROUPS = ("trainer", "logger", "callbacks", "paths", "debug", "hydra")
 LAST_CHECKPOINT = Path("checkpoints") / "last.ckpt"
 # how far a resume of a resume of ... is followed back
 _MAX_RESUMES = 50
-_INTERPOLATION = re.compile(r"^\$\{([\w.]+)\}$")
 
 
 @dataclass
@@ -86,20 +86,22 @@ class Run:
     # why the run, although it has metrics, did not train and test as configured (``fast_dev_run``,
     # ``unfinished: stopped after epoch 3 of 40``...; :func:`incomplete_reason`); None for a finished run
     incomplete: str | None = None
+    # the config as OmegaConf's, made on the first lookup
+    _node: DictConfig | None = field(default=None, init=False, repr=False, compare=False)
 
     def get(self, key: str, default: Any = _MISSING) -> Any:
-        """A group's choice (``model``) or a dotted config value (``model.net.lmax``); ``default``
-        (or ``KeyError``) when the run has neither."""
+        """A group's choice (``model``) or a dotted config value (``model.net.lmax``, interpolations resolved);
+        ``default`` (or ``KeyError``) when the run has neither."""
         if key in self.choices:
             return self.choices[key]
-        node: Any = self.config
-        for part in key.split("."):
-            if not isinstance(node, dict) or part not in node:
-                if default is _MISSING:
-                    raise KeyError(key)
-                return default
-            node = node[part]
-        return node
+        if self._node is None:
+            self._node = OmegaConf.create(self.config)
+        value = config_value(self._node, key, _MISSING)
+        if value is _MISSING:
+            if default is _MISSING:
+                raise KeyError(key)
+            return default
+        return value
 
     def matches(self, match: dict[str, Any]) -> bool:
         """Whether every ``key: value`` of ``match`` holds for this run (a key it lacks is ``null``)."""
@@ -175,29 +177,8 @@ class _Setting:
     notes: list[str] = field(default_factory=list)
 
 
-def _override_key(override: str) -> str:
-    """``+a.b=1`` -> ``a.b``, ``dataset=symsol1`` -> ``dataset`` (as run_config.override_key)."""
-    return override.lstrip("+~").split("=")[0]
-
-
 def _own_group(group: str) -> bool:
     return any(group == g or group.startswith(g + "/") for g in OWN_GROUPS)
-
-
-def _lookup(config: dict[str, Any], key: str) -> Any:
-    """The value of a dotted ``key`` in a config (``_MISSING`` when absent), a plain ``${other.key}`` followed."""
-    node: Any = _MISSING
-    for _ in range(5):  # interpolations of interpolations, not forever
-        node = config
-        for part in key.split("."):
-            if not isinstance(node, dict) or part not in node:
-                return _MISSING
-            node = node[part]
-        match = _INTERPOLATION.match(node) if isinstance(node, str) else None
-        if not match:
-            return node
-        key = match.group(1)
-    return node
 
 
 def _checkpoint_run_dir(ckpt: Path) -> Path | None:
@@ -210,7 +191,16 @@ def _checkpoint_run_dir(ckpt: Path) -> Path | None:
 
 
 def _read_setting(path: Path, depth: int = 0) -> _Setting:
-    """``OSError`` or ``yaml.YAMLError`` when a file of ``.hydra/`` (or ``resumed_config.yaml``) is unreadable."""
+    """What the run in ``path`` was: its Hydra files, read as a resumed run's where it resumed a checkpoint.
+    ``OSError`` or ``yaml.YAMLError`` when a file of ``.hydra/`` (or ``resumed_config.yaml``) is unreadable."""
+    setting = _read_hydra_files(path)
+    if not (path / RESUMED_CONFIG).is_file():
+        return setting
+    return _read_resumed(path, setting, depth)
+
+
+def _read_hydra_files(path: Path) -> _Setting:
+    """The config, group choices, overrides and ``hydra`` section that Hydra wrote into ``path/.hydra/``."""
     hydra_dir = path / ".hydra"
     config = _read_yaml(hydra_dir / "config.yaml") or {}
     hydra_cfg = (_read_yaml(hydra_dir / "hydra.yaml") or {}) if (hydra_dir / "hydra.yaml").is_file() else {}
@@ -218,48 +208,61 @@ def _read_setting(path: Path, depth: int = 0) -> _Setting:
     overrides = [str(o) for o in (_read_yaml(hydra_dir / "overrides.yaml") or [])] if has_overrides else []
     hydra = dict(hydra_cfg.get("hydra") or {})
     choices = dict((hydra.get("runtime") or {}).get("choices") or {})
-    if not (path / RESUMED_CONFIG).is_file():
-        return _Setting(config, choices, overrides, hydra)
+    return _Setting(config, choices, overrides, hydra)
+
+
+def _resumed_checkpoint(path: Path, own: _Setting, effective: dict[str, Any]) -> Path | None:
+    """The checkpoint a resumed run started from (absolute; a relative ``ckpt_path`` is taken from where the
+    resume was started), ``None`` where neither config names one."""
+    text = effective.get("ckpt_path") or own.config.get("ckpt_path")
+    if not text:
+        return None
+    ckpt = Path(str(text)).expanduser()
+    if not ckpt.is_absolute():
+        ckpt = Path(str((own.hydra.get("runtime") or {}).get("cwd") or path)) / ckpt
+    return Path(os.path.normpath(ckpt))
+
+
+def _read_resumed(path: Path, own: _Setting, depth: int) -> _Setting:
+    """A resumed run (module docstring): the config of ``resumed_config.yaml``, the choices and overrides of the
+    run that wrote its checkpoint with the resume's own (``own``: its Hydra files) laid over them."""
     effective = _read_yaml(path / RESUMED_CONFIG) or {}
-    ckpt_text = effective.get("ckpt_path") or config.get("ckpt_path")
-    if not ckpt_text:
-        return _Setting(effective, choices, overrides, hydra)
-    ckpt = Path(str(ckpt_text)).expanduser()
-    if not ckpt.is_absolute():  # relative to where the resume was started
-        ckpt = Path(str((hydra.get("runtime") or {}).get("cwd") or path)) / ckpt
-    ckpt = Path(os.path.normpath(ckpt))
-    own = [o for o in overrides if _override_key(o) != "ckpt_path"]
-    named = {_override_key(o) for o in own}  # groups (and keys) the resume's command line names
+    ckpt = _resumed_checkpoint(path, own, effective)
+    if ckpt is None:
+        return _Setting(effective, own.choices, own.overrides, own.hydra)
+    overrides = [o for o in own.overrides if override_key(o) != "ckpt_path"]
+    named = {override_key(o) for o in overrides}  # groups (and keys) the resume's command line names
     origin_dir = _checkpoint_run_dir(ckpt)
-    origin: _Setting | None = None
+    origin, why = None, "no run directory with .hydra/ holds that checkpoint"
     if origin_dir is not None and origin_dir.resolve() != path.resolve() and depth < _MAX_RESUMES:
         try:
             origin = _read_setting(origin_dir, depth + 1)
-        except (OSError, yaml.YAMLError):
-            origin = None
+        except (OSError, yaml.YAMLError) as e:
+            why = f"the run directory that holds it, {origin_dir}, is unreadable ({e})"
     if origin is None:
-        unknown = sorted(g for g, v in choices.items() if not (_own_group(g) or g in named) and v is not None)
-        kept = {g: (None if g in unknown else v) for g, v in choices.items()}  # None: unknown, not the default
+        unknown = sorted(g for g, v in own.choices.items() if not (_own_group(g) or g in named) and v is not None)
+        kept = {g: (None if g in unknown else v) for g, v in own.choices.items()}  # None: unknown, not the default
         note = (
-            f"resumed from {ckpt}, but no run directory with .hydra/ holds that checkpoint: the original run's "
-            f"choices ({', '.join(unknown)}) and overrides are unknown; its config values come from {RESUMED_CONFIG}"
+            f"resumed from {ckpt}, but {why}: the original run's choices ({', '.join(unknown)}) and overrides "
+            f"are unknown; its config values come from {RESUMED_CONFIG}"
         )
-        return _Setting(effective, kept, own, hydra, ckpt, [note])
-    merged_choices = dict(origin.choices)
-    merged_choices.update({g: v for g, v in choices.items() if _own_group(g) or g in named})
+        return _Setting(effective, kept, overrides, own.hydra, ckpt, [note])
+    choices = dict(origin.choices)
+    choices.update({g: v for g, v in own.choices.items() if _own_group(g) or g in named})
     changed = []
-    for override in own:
-        key = _override_key(override)
-        if key in choices or key in origin.choices:  # a group: did its choice change?
-            if not values_equal(choices.get(key), origin.choices.get(key)):
+    effective_node, origin_node = OmegaConf.create(effective), OmegaConf.create(origin.config)
+    for override in overrides:
+        key = override_key(override)
+        if key in own.choices or key in origin.choices:  # a group: did its choice change?
+            if not values_equal(own.choices.get(key), origin.choices.get(key)):
                 changed.append(override)
             continue
-        now, before = _lookup(effective, key), _lookup(origin.config, key)
+        now, before = config_value(effective_node, key, _MISSING), config_value(origin_node, key, _MISSING)
         if (now is _MISSING) != (before is _MISSING) or not (now is _MISSING or values_equal(now, before)):
             changed.append(override)
-    keys = {_override_key(o) for o in changed}
-    merged = [o for o in origin.overrides if _override_key(o) not in keys] + changed
-    return _Setting(effective, merged_choices, merged, hydra, ckpt, list(origin.notes))
+    keys = {override_key(o) for o in changed}
+    merged = [o for o in origin.overrides if override_key(o) not in keys] + changed
+    return _Setting(effective, choices, merged, own.hydra, ckpt, list(origin.notes))
 
 
 def _only_a_start(path: Path) -> bool:

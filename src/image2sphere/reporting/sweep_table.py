@@ -38,6 +38,7 @@ from typing import Any
 
 import yaml
 
+from image2sphere.config_text import override_key
 from image2sphere.reporting.metrics_table import CALIBRATED, TABLE_COLUMNS, metric_layout
 from image2sphere.reporting.runs import Run
 from image2sphere.reporting.tables import (
@@ -82,7 +83,6 @@ COVERAGE_TITLE = ("HDR coverage (class means: the fraction of the (image, rotati
 NOT_A_SETTING = ("seed",)
 
 _ABSENT = object()
-_INTERPOLATION = re.compile(r"^\$\{([\w.]+)\}$")
 
 
 def is_sweep(runs: list[Run]) -> bool:
@@ -95,27 +95,16 @@ def _overrides(run: Run) -> dict[str, str]:
     """``key -> value`` (as typed) of the run's command-line overrides; the last of a key wins."""
     out = {}
     for text in run.overrides:
-        key, eq, value = text.partition("=")
-        key = key.lstrip("+~")
+        key, (_, eq, value) = override_key(text), text.partition("=")
         if eq and key and not key.startswith(("hydra.", "hydra/")):
             out[key] = value
     return out
 
 
-def _composed(run: Run, key: str) -> Any:
-    """The run's value of ``key`` from its config (or ``_ABSENT``), a plain ``${other.key}`` followed."""
-    value = run.get(key, _ABSENT)
-    for _ in range(5):  # interpolations of interpolations, not forever
-        match = _INTERPOLATION.match(value) if isinstance(value, str) else None
-        if not match:
-            break
-        value = run.get(match.group(1), value)
-    return value
-
-
 def _value(run: Run, key: str) -> Any:
+    """The value of ``key`` as the run's command line typed it, else as its config composed it (``_ABSENT``)."""
     overrides = _overrides(run)
-    return overrides[key] if key in overrides else _composed(run, key)
+    return overrides[key] if key in overrides else run.get(key, _ABSENT)
 
 
 def _canonical(value: Any) -> Any:

@@ -38,6 +38,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from image2sphere.checks import check_int
+from image2sphere.config_text import override_key
 from image2sphere.data.workers import check_num_workers
 from image2sphere.so3.grid import check_grid_levels
 
@@ -233,11 +234,6 @@ def explicit_override_keys(config_name: str, overrides: list[str]) -> set[str]:
 
     with_ov, without = leaves(overrides), leaves([])
     return {k for k in set(with_ov) | set(without) if with_ov.get(k, "<absent>") != without.get(k, "<absent>")}
-
-
-def override_key(override: str) -> str:
-    """The key or group a command-line override sets: ``+a.b=1`` -> ``a.b``, ``dataset=symsol1`` -> ``dataset``."""
-    return override.lstrip("+~").split("=")[0]
 
 
 def _under(key: str, prefix: str) -> bool:

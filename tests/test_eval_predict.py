@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -100,6 +101,27 @@ def test_eval_recomputes_batchnorm_statistics_as_training_did(trained, tmp_path)
     bad = [*common[:-1], "batchnorm_statistics=yes", f"hydra.run.dir={tmp_path / 'bad'}"]
     proc = _run("src.eval", bad, check=False)
     assert proc.returncode != 0 and "batchnorm_statistics" in proc.stderr
+
+
+@pytest.mark.parametrize(("given", "run_config", "expected"), [
+    (None, {"callbacks": {"batchnorm_statistics": {"num_batches": 7}}}, 7),  # the checkpoint's run's number
+    (None, {"callbacks": {}}, 50),  # trained without the callback: its default
+    (3, {"callbacks": {"batchnorm_statistics": {"num_batches": 7}}}, 3),  # given on the command line
+])  # fmt: skip
+def test_eval_recomputes_over_as_many_batches_as_the_checkpoints_run_unless_told(monkeypatch, given, run_config,
+                                                                                 expected):  # fmt: skip
+    """Quick. ``batchnorm_batches=null`` (the default) reads the number the checkpoint's run gave
+    ``callbacks.batchnorm_statistics``."""
+    import image2sphere.training.callbacks as callbacks
+    from image2sphere.training.evaluate import _recompute_batchnorm_statistics
+
+    seen = []
+    monkeypatch.setattr(callbacks, "recompute_batchnorm_statistics", lambda *a, **k: seen.append(a[2]))
+    datamodule = SimpleNamespace(setup=lambda stage: None, train_dataloader=lambda: None)
+    trainer = SimpleNamespace(strategy=SimpleNamespace(root_device=torch.device("cpu")))
+    _recompute_batchnorm_statistics(torch.nn.Linear(1, 1), datamodule, {"run_config": run_config, "epoch": 1}, given,
+                                    trainer)  # fmt: skip
+    assert seen == [expected]
 
 
 def test_eval_with_refinement_changes_only_the_point_estimate(trained, tmp_path):

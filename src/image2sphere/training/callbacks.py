@@ -28,8 +28,9 @@ __all__ = ["BatchNormStatistics", "SO3PlotCallback", "recompute_batchnorm_statis
 
 log = logging.getLogger(__name__)
 
-#: training batches BatchNorm's statistics are averaged over (``callbacks.batchnorm_statistics.num_batches``,
-#: ``src.eval``'s ``batchnorm_batches``)
+#: training batches BatchNorm's statistics are averaged over when nothing says otherwise: the default of
+#: :class:`BatchNormStatistics` and of ``src.eval``'s ``batchnorm_batches`` for a checkpoint whose run did not
+#: name one (a run's config states its own: ``callbacks.batchnorm_statistics.num_batches``)
 BATCHNORM_BATCHES = 50
 
 
@@ -100,11 +101,10 @@ class BatchNormStatistics(pl.Callback):
 
     Why: in training, BatchNorm normalises with the batch's own statistics; in evaluation with the
     running averages (momentum 0.1), which lag behind weights that are still moving. After a few
-    hundred steps at a constant learning rate that lag can matter a great deal. Measured on the
-    renderer's marked sphere (4 epochs, 288 steps): every image with the mark hidden is the same image,
-    the network trained on it puts 78 % of its mass on the rotations that hide the mark with batch
-    statistics, and 4 % with the running averages, a test log likelihood of -12.3 against -1.5 after the
-    statistics are recomputed (docs/training_fidelity.md, "Every SYMSOL shape").
+    hundred steps at a constant learning rate that lag can matter a great deal: on the renderer's marked
+    sphere, where every image with the mark hidden is the same image, the running averages moved the
+    network's mass off the rotations that hide the mark, which the same weights found with batch
+    statistics (the figures: docs/training_fidelity.md, "Every SYMSOL shape").
 
     How: :func:`torch.optim.swa_utils.update_bn` (a cumulative average over the batches) on the first
     ``num_batches`` batches of this epoch's training order (at most the epoch's own number of batches),

@@ -26,6 +26,7 @@ from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from image2sphere.config_text import override_key
 from image2sphere.reporting.metrics_table import format_metrics_markdown, format_metrics_table
 from image2sphere.training.checkpoint import (
     AtomicCheckpointIO,
@@ -39,7 +40,7 @@ from image2sphere.training.checkpoint import (
 from image2sphere.training.cluster import ddp_children_run_this_job
 from image2sphere.training.pipeline import fit_recalibration_on, instantiate_list
 from image2sphere.training.progress import EpochProgressBar
-from image2sphere.training.run_config import check_eval_config, command_line, override_key
+from image2sphere.training.run_config import check_eval_config, command_line
 from image2sphere.training.stop import (
     DEFAULT_GRACE_S,
     StopRequested,
@@ -219,10 +220,14 @@ def _recompute_batchnorm_statistics(
     module, datamodule, ckpt: dict, num_batches: int | None, trainer: pl.Trainer
 ) -> None:
     """``batchnorm_statistics=recompute``: the running statistics from the checkpoint's weights over the first
-    ``num_batches`` (null: the callback's default) batches of its last epoch's training order, as
-    ``callbacks.batchnorm_statistics`` computes them at the end of that epoch (the same batches; here in
-    float32, in this one process)."""
+    ``num_batches`` batches of its last epoch's training order, as ``callbacks.batchnorm_statistics`` computes
+    them at the end of that epoch (the same batches; here in float32, in this one process). ``num_batches``
+    null: the number the checkpoint's run gave that callback, else the callback's default."""
     from image2sphere.training.callbacks import BATCHNORM_BATCHES, recompute_batchnorm_statistics
+
+    if num_batches is None:
+        run = OmegaConf.create(ckpt.get("run_config") or {})
+        num_batches = OmegaConf.select(run, "callbacks.batchnorm_statistics.num_batches", default=None)
 
     datamodule.setup("fit")
     device = trainer.strategy.root_device

@@ -32,26 +32,10 @@ from e3nn import o3
 
 from image2sphere.so3.wigner import default_dtype
 from image2sphere.testing import run_command
+from image2sphere.testing.tiny import TINY  # noqa: F401 - the tests' tiny settings, imported from here
 
 REPO = Path(__file__).resolve().parents[1]
 
-# Small and fast: 32 px images, lmax 2, coarse grids, a narrow network.
-TINY = [
-    "dataset.render.train=10",
-    "dataset.render.test=3",
-    "dataset.val_per_shape=2",
-    "dataset.image_size=32",
-    "dataset.batch_size=6",
-    "lmax=2",
-    "train_grid_level=2",
-    "eval_grid_level=3",
-    "model.spread_grid_level=2",
-    "model.net.sphere_channels=16",
-    "model.net.so3_channels=4",
-    "model.net.activation_resolution=4",
-    "trainer.accelerator=cpu",
-    "trainer.num_sanity_val_steps=0",
-]
 # smaller batches and evaluation grids than the paper's, so that a smoke run of an experiment takes seconds
 SMOKE = [
     "trainer.fast_dev_run=true",
@@ -176,6 +160,14 @@ def run_module(argv: list[str], check: bool = True, env: dict | None = None, cwd
 def run_train(args: list[str], data_dir: Path, log_dir: Path, check: bool = True) -> subprocess.CompletedProcess:
     """``python -m src.train`` with the tiny settings (see :func:`train_command` and :func:`run_module`)."""
     return run_module(train_command(args, data_dir, log_dir), check=check)
+
+
+def load_script(path: str) -> dict:
+    """The names a script of the repository (``benchmarks/preemption.py``) defines, read without running its
+    ``__main__`` block (:func:`runpy.run_path`): tests call its functions."""
+    import runpy
+
+    return runpy.run_path(str(REPO / path))
 
 
 def caught(function, *args) -> BaseException:

@@ -39,8 +39,7 @@ from image2sphere.data.workers import (
     init_worker,
     local_processes,
 )
-from image2sphere.testing.commands import process_group
-from image2sphere.testing.preemption import group_alive
+from image2sphere.testing.commands import group_alive, process_group
 
 REPO = Path(__file__).resolve().parents[1]
 DATASETS = ("modelnet10", "pascal3d", "symsol")

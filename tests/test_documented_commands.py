@@ -38,7 +38,8 @@ changed or removed; the only additions (never for a key the command sets itself)
   ``python benchmarks/projection_noise.py`` to its end (a ratio per degree), ``python benchmarks/train_step.py``
   to its end at a small size (ResNet-18, 64 px, batch 2: the paper's size takes minutes on a CPU),
   ``python benchmarks/batchnorm_statistics.py`` to its end with one timed repeat of each pass,
-  ``python benchmarks/flow_grid.py`` at level 2 once (both trees give the same values);
+  ``python benchmarks/flow_grid.py`` at level 2 once (both trees give the same values),
+  ``python benchmarks/preemption.py`` its schedule and command (``--dry-run``);
 * ``pip install`` lines are compared with what ``.ci/run`` installs; ``python -m pytest`` is not run
   inside the suite: ``.ci/run`` must end with exactly that command;
 * external tools (``SKIPPED``) are listed with the reason they are not run.
@@ -850,12 +851,13 @@ def check_verify(argv, proc, args: list[str], ws: Workspace) -> None:
 
 
 def check_preemption(argv, proc, args: list[str], ws: Workspace) -> None:
-    """The pre-emption stress check takes about 25 minutes: here its schedule (``--dry-run``, added); its
-    moments run for real in test_scaling (the hardest two) and as the script itself."""
+    """The pre-emption stress check (``benchmarks/preemption.py``) takes about 25 minutes: here its schedule
+    (``--dry-run``, added); its moments run for real in test_scaling (the hardest two) and as the script itself."""
     assert proc.returncode == 0, describe(argv, proc)
     lines = [line.split() for line in proc.stdout.splitlines() if line[:2].strip().isdigit()]
     assert len(lines) == 22 and {w[2] for w in lines} == {"rank0", "group"}, proc.stdout
-    assert "-m src.train trainer=ddp trainer.devices=2" in proc.stdout, proc.stdout
+    command = proc.stdout.splitlines()[0].split()
+    assert command[:2] == ["-m", "src.train"] and {"trainer=ddp", "trainer.devices=2"} <= set(command), proc.stdout
 
 
 def check_fixtures(argv, proc, args: list[str], ws: Workspace) -> None:
@@ -1153,6 +1155,9 @@ def test_documented_command(command: Command, fixtures_root, checkpoint_run, tmp
         assert all(float(r[7]) < float(r[6]) for r in rows), proc.stdout  # less memory than e3nn's dense grids
         assert proc.stdout.count("ratios e3nn / ours") == 2, proc.stdout
         return
+    if args[0] == "benchmarks/preemption.py":  # its schedule and command (the moments: test_scaling)
+        argv += ["--dry-run"]
+        return check_preemption(argv, run_in(ws, argv), args, ws)
     assert args[0] == "-m", f"no runner for {text!r}"
     module, rest = args[1], args[2:]
     if module == "src.train":
@@ -1173,14 +1178,11 @@ def test_documented_command(command: Command, fixtures_root, checkpoint_run, tmp
         "image2sphere.data.verify": check_verify,
         "image2sphere.data.fixtures": check_fixtures,
         "image2sphere.data.render": check_render,
-        "image2sphere.testing.preemption": check_preemption,
         "src.tables": check_tables,
     }
     assert module in checks, f"no runner for python -m {module} (shown at {command.where})"
     if module in ("src.eval", "src.predict"):
         argv += [f"paths.log_dir={ws.root / 'logs'}"]
-    if module == "image2sphere.testing.preemption":
-        argv += ["--dry-run"]
     if module == "src.tables":  # the sweeps it reads: a finished run for every job of the table
         given = tables_options(rest)
         for run_dir in given.run_dirs:

@@ -217,7 +217,7 @@ def test_sigterm_in_the_eval_test_stops_after_that_batch_and_writes_nothing(trai
     """src.eval takes the same stop path as training (image2sphere.training.stop): the signal is recorded,
     the test stops after its batch, rank 0 says so and exits with 143; no metrics are written."""
     import image2sphere.training.evaluate as evaluate
-    from image2sphere.testing.preemption import SignalAt
+    from image2sphere.testing.signal_at import SignalAt
 
     switch_off = evaluate.use_flag_only_signals
 

@@ -26,7 +26,7 @@ from torch.utils.data import DataLoader, TensorDataset
 
 from conftest import REPO, run_train
 from image2sphere import batch_progress as batch_progress_hook
-from image2sphere.testing.preemption import SignalAt
+from image2sphere.testing.signal_at import SignalAt
 from image2sphere.training import progress, stop
 from image2sphere.training.checkpoint import AtomicCheckpointIO, batches_done_in_epoch
 from image2sphere.training.progress import EpochProgressBar, batch_progress
@@ -201,7 +201,7 @@ def test_train_command_resumed_mid_epoch_shows_the_epoch_and_batch(tmp_path):
     then resumed (about 20 s)."""
     data_dir = tmp_path / "data"
     common = ["logger=csv", "trainer.max_epochs=1", "test=false", "recalibration=off"]
-    signal_at = ["+callbacks.signal_at._target_=image2sphere.testing.preemption.SignalAt",
+    signal_at = ["+callbacks.signal_at._target_=image2sphere.testing.signal_at.SignalAt",
                  "+callbacks.signal_at.phase=optimizer_step", "+callbacks.signal_at.occurrence=2"]  # fmt: skip
     first = run_train([*common, *signal_at, f"hydra.run.dir={tmp_path / 'first'}"], data_dir, tmp_path, check=False)
     assert first.returncode == 143, first.stderr[-3000:]

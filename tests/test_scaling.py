@@ -22,7 +22,7 @@ import pytest
 import torch
 import yaml
 
-from conftest import ENV, REPO, read_metrics, run_module, run_train, train_command
+from conftest import ENV, REPO, load_script, read_metrics, run_module, run_train, train_command
 from image2sphere.training.cluster import is_secondary_rank, is_slurm_requeue, requeue_checkpoint
 from image2sphere.training.resolvers import sqlite_storage
 
@@ -254,7 +254,7 @@ def test_ddp_run_resumes_from_its_checkpoint_on_two_processes(ddp_run, tmp_path,
     assert read_metrics(resumed)["n_images"] == 2 * TEST_PER_SHAPE
 
 
-# the hardest moments of the pre-emption stress check (python -m image2sphere.testing.preemption runs all 22):
+# the hardest moments of the pre-emption stress check (python benchmarks/preemption.py runs all 22):
 # SIGTERM inside Adam.step, where Lightning's handler used to broadcast while the other rank waited in a
 # barrier; to rank 0 alone in an epoch's last batch (the stop waits for the epoch's end, and the resumed
 # run's loader workers start at the right epoch), and from rank 1 to every process of the run, as SLURM
@@ -264,10 +264,11 @@ HARDEST_MOMENTS = ("optimizer_step#4/rank0", "optimizer_step#3/group")
 
 @pytest.mark.slow
 def test_sigterm_inside_the_optimizer_step_ends_every_process_and_the_resumed_run_ends_as_uninterrupted(tmp_path):
-    from image2sphere.testing.preemption import check_moment, run_group, schedule, train_argv
-
+    tool = load_script("benchmarks/preemption.py")
+    check_moment, run_and_signal, schedule, train_argv = (tool[k] for k in ("check_moment", "run_and_signal",
+                                                                             "schedule", "train_argv"))  # fmt: skip
     data, reference = tmp_path / "data", tmp_path / "reference"
-    ref = run_group(train_argv([], data, reference), tmp_path / "reference.log", timeout=600, env=ENV)
+    ref = run_and_signal(train_argv([], data, reference), tmp_path / "reference.log", timeout=600, env=ENV)
     assert ref["returncode"] == 0 and not ref["hung"], (tmp_path / "reference.log").read_text()[-3000:]
     moments = {m.name: m for m in schedule(22, seed=0)}
     for name in HARDEST_MOMENTS:

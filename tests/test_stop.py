@@ -3,7 +3,7 @@
 Quick tier: the handlers, the decision on one process and on two (gloo), Lightning's connector switched
 off, and in-process fits of a tiny model stopped from inside the optimizer's step, in an epoch's last
 batch (the stop waits for the epoch's end) and in the test. The two-process DDP runs stopped at seeded
-moments are in tests/test_scaling.py (slow) and image2sphere.testing.preemption (the whole schedule).
+moments are in tests/test_scaling.py (slow) and benchmarks/preemption.py (the whole schedule).
 """
 
 from __future__ import annotations
@@ -21,9 +21,9 @@ import torch
 from torch import nn
 from torch.utils.data import DataLoader, TensorDataset
 
-from conftest import caught
-from image2sphere.testing.commands import process_group
-from image2sphere.testing.preemption import MOMENT_PHASES, SignalAt, group_alive, schedule
+from conftest import caught, load_script
+from image2sphere.testing.commands import group_alive, process_group
+from image2sphere.testing.signal_at import SignalAt
 from image2sphere.training import stop
 from image2sphere.training.checkpoint import AtomicCheckpointIO, EpochCheckpoint, batches_done_in_epoch
 
@@ -513,6 +513,9 @@ def test_sigterm_in_the_test_stops_it_after_that_batch(tmp_path):
 
 # ------------------------------------------------------------------ the stress check's schedule and tools
 def test_the_schedule_covers_every_phase_for_both_targets_and_is_seeded():
+    """Quick. The schedule of ``benchmarks/preemption.py`` (its functions, the script read without running it)."""
+    tool = load_script("benchmarks/preemption.py")
+    schedule, MOMENT_PHASES = tool["schedule"], tool["MOMENT_PHASES"]  # noqa: N806 - the script's names
     moments = schedule(22, seed=0)
     assert len(moments) == 22 and len({m.name for m in moments}) == 22
     covered = {(m.phase, m.target) for m in moments if not m.timed}
@@ -547,7 +550,7 @@ def test_a_second_ctrl_c_exits_130_with_one_last_line_naming_the_checkpoint(tmp_
 
     run = tmp_path / "run"
     send = [f"+callbacks.{name}.{key}={value}" for name, phase in (("first", "forward_backward"),
-            ("second", "optimizer_step")) for key, value in (("_target_", "image2sphere.testing.preemption.SignalAt"),
+            ("second", "optimizer_step")) for key, value in (("_target_", "image2sphere.testing.signal_at.SignalAt"),
             ("phase", phase), ("occurrence", 4), ("signum", int(signal.SIGINT)))]  # fmt: skip
     cmd = train_command(["trainer.max_epochs=2", *send, f"hydra.run.dir={run}"], tmp_path / "data", tmp_path / "logs")
     env = {k: v for k, v in ENV.items() if k != "WANDB_SILENT"}

@@ -28,7 +28,7 @@ import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
-__all__ = ["needs_own_process", "process_group", "run_command", "run_group"]
+__all__ = ["group_alive", "needs_own_process", "process_group", "run_command", "run_group"]
 
 # overrides after which a run starts other processes from its own command line
 _OWN_PROCESS = ("trainer=ddp", "hydra/launcher=local_parallel")
@@ -102,6 +102,22 @@ def process_group(argv: Sequence[str], **popen_kwargs) -> Iterator[subprocess.Po
         with contextlib.suppress(ProcessLookupError, PermissionError):
             os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
+
+
+def group_alive(pgid: int) -> list[int]:
+    """The processes of group ``pgid`` that have not exited (zombies left out), read from ``/proc``."""
+    alive = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2 :].split()  # after "pid (comm) "
+        if fields[0] != "Z" and int(fields[2]) == pgid:
+            alive.append(int(entry.name))
+    return alive
 
 
 def run_group(argv: Sequence[str], cwd=None, env: Mapping[str, str] | None = None,

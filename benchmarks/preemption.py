@@ -1,7 +1,7 @@
 """Pre-emption stress check: a two-process DDP run stopped by SIGTERM at many moments must always end.
 
-``python -m image2sphere.testing.preemption [--moments 22] [--seed 0] [--out DIR]`` (from the repository
-root, on the CPU; about 30 s a moment on two cores) trains a tiny two-process DDP run (Lightning's
+``python benchmarks/preemption.py [--moments 22] [--seed 0] [--out DIR]`` (from the repository root, on the
+CPU; about 30 s a moment on two cores) trains a tiny two-process DDP run (Lightning's
 ``trainer=ddp`` on the CPU, gloo, the default callbacks, two loader workers a loader) once without
 interruption, then once per *moment* of a seeded schedule with a SIGTERM at that moment, and checks for each:
 
@@ -17,9 +17,10 @@ A moment is a *phase* of the run, its n-th occurrence, the rank that sends the s
 signals a job on pre-emption or ``scancel``). The phases are the places where a signal used to hurt:
 setting up (before the first checkpoint), the sanity check, between forward and backward, inside the
 optimizer's step, validation, inside the write of a checkpoint, the end of an epoch, the end of training,
-the test. The signal is sent from inside that phase by :class:`SignalAt`, a callback the run is given on
-its command line, so that it lands there every time; the schedule adds moments timed from outside
-(seconds after the start or after the first ``last.ckpt``), which land wherever the run happens to be.
+the test. The signal is sent from inside that phase by ``SignalAt``, a callback the run is given on its
+command line (:mod:`image2sphere.testing.signal_at`), so that it lands there every time; the schedule adds
+moments timed from outside (seconds after the start or after the first ``last.ckpt``), which land wherever
+the run happens to be.
 Such a signal may land where the run has no say: before its handlers exist (the first seconds, while
 Python imports; Python's default ends the process at once, and when that is a rank Lightning is just
 starting, Lightning kills rank 0 within 5 s) or after its work is done. Those outcomes pass when
@@ -29,6 +30,9 @@ metrics.
 On a run that does not exit within the bound, its stacks are dumped with ``py-spy`` when that is
 installed, and the process group is killed: nothing is left behind. The exit status is the number of
 failed moments. ``tests/test_scaling.py`` runs the hardest moments in the slow tier.
+
+The run is the tests' tiny one (:data:`image2sphere.testing.tiny.TINY`) on two processes, with the
+settings of :data:`RUN` laid over it.
 """
 
 from __future__ import annotations
@@ -42,41 +46,32 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
 
-import lightning.pytorch as pl
+from image2sphere.config_text import override_key
+from image2sphere.testing.commands import group_alive, process_group
+from image2sphere.testing.signal_at import PHASES
+from image2sphere.testing.tiny import TINY
 
-__all__ = ["MOMENT_PHASES", "Moment", "SignalAt", "check_moment", "main", "run_group", "schedule"]
-
-# A run small enough to take seconds, with what a user has: every default callback (the tqdm progress bar
-# on, SO(3) plots, BatchNorm statistics, checkpoints) and two loader workers per loader (the real datasets'
-# configs start workers). 2 ranks x batch 2, 4 training batches a rank per epoch, 2 epochs, one validation
-# batch a rank, a sanity check, 2 test batches a rank. No logger: the stop writes nothing a logger holds.
-RUN = [
+# Laid over the tiny settings: what a user has, every default callback (the tqdm progress bar on, SO(3)
+# plots, BatchNorm statistics, checkpoints) and two loader workers per loader (the real datasets' configs
+# start workers), on 2 ranks x batch 2: 4 training batches a rank per epoch, 2 epochs, one validation batch
+# a rank, a sanity check, 2 test batches a rank. No logger: the stop writes nothing a logger holds.
+OVER_TINY = [
     "trainer=ddp",
     "trainer.devices=2",
     "trainer.accelerator=cpu",
     "trainer.max_epochs=2",
     "trainer.num_sanity_val_steps=1",
     "trainer.strategy.timeout.seconds=60",
-    "dataset.render.train=10",
-    "dataset.render.test=3",
-    "dataset.val_per_shape=2",
-    "dataset.image_size=32",
     "dataset.batch_size=2",
     "dataset.num_workers=2",
-    "lmax=2",
-    "train_grid_level=2",
-    "eval_grid_level=3",
-    "model.spread_grid_level=2",
-    "model.net.sphere_channels=16",
-    "model.net.so3_channels=4",
-    "model.net.activation_resolution=4",
     "logger=none",
 ]
+RUN = [o for o in TINY if override_key(o) not in {override_key(p) for p in OVER_TINY}] + OVER_TINY
 # phase -> (occurrences in the run above on each rank, ranks that pass it)
 MOMENT_PHASES: dict[str, tuple[int, tuple[int, ...]]] = {
     "fit_start": (1, (0, 1)),
@@ -92,75 +87,7 @@ MOMENT_PHASES: dict[str, tuple[int, tuple[int, ...]]] = {
 TIMED = ("after_start", "after_first_checkpoint")
 
 
-# ---------------------------------------------------------------------------------------------- in the run
-class SignalAt(pl.Callback):
-    """A Lightning callback that sends ``signal`` from inside ``phase`` (its ``occurrence``-th time on
-    ``rank``) to this process (``target="rank"``) or, through a process of its own, to the run's whole
-    process group (``"group"``).
-    ``stamp``: a file that receives the time it was sent. Given on the command line, e.g.
-    ``+callbacks.signal_at._target_=image2sphere.testing.preemption.SignalAt +callbacks.signal_at.phase=...``.
-    """
-
-    def __init__(self, phase: str, occurrence: int = 1, rank: int = 0, target: str = "rank",
-                 stamp: str | None = None, signum: int = int(signal.SIGTERM)):  # fmt: skip
-        if phase not in MOMENT_PHASES:
-            raise ValueError(f"phase must be one of {', '.join(MOMENT_PHASES)}, got {phase!r}")
-        if target not in ("rank", "group"):
-            raise ValueError(f"target must be rank or group, got {target!r}")
-        self.phase, self.occurrence, self.rank, self.target = phase, int(occurrence), int(rank), target
-        self.stamp, self.signum, self.seen = stamp, int(signum), 0
-
-    def _tick(self, trainer: Any, phase: str) -> None:
-        if phase != self.phase or trainer.global_rank != self.rank:
-            return
-        self.seen += 1
-        if self.seen != self.occurrence:
-            return
-        if self.stamp:
-            Path(self.stamp).write_text(f"{time.time()}\n")
-        if self.target == "group":  # sent by another process, as SLURM or kill do; delivered before it returns
-            code = "import os, sys; os.killpg(int(sys.argv[1]), int(sys.argv[2]))"
-            subprocess.run([sys.executable, "-S", "-c", code, str(os.getpgrp()), str(self.signum)], check=True,
-                           start_new_session=True)  # outside the group it signals  # fmt: skip
-        else:
-            os.kill(os.getpid(), self.signum)
-
-    # the phases
-    def setup(self, trainer: Any, pl_module: Any, stage: str) -> None:
-        if stage != "fit":
-            return
-        self._tick(trainer, "fit_start")
-        io = trainer.strategy.checkpoint_io
-        save = io.save_checkpoint
-
-        def save_and_signal(*args: Any, **kwargs: Any) -> None:
-            self._tick(trainer, "checkpoint_write")  # the handler runs here, inside the write
-            return save(*args, **kwargs)
-
-        io.save_checkpoint = save_and_signal
-
-    def on_sanity_check_start(self, trainer: Any, pl_module: Any) -> None:
-        self._tick(trainer, "sanity_check")
-
-    def on_before_backward(self, trainer: Any, pl_module: Any, loss: Any) -> None:
-        self._tick(trainer, "forward_backward")
-
-    def on_train_start(self, trainer: Any, pl_module: Any) -> None:
-        for optimizer in trainer.optimizers:  # inside optimizer.step(), before the parameters change
-            optimizer.register_step_pre_hook(lambda *_: self._tick(trainer, "optimizer_step"))
-
-    def on_validation_batch_start(self, trainer: Any, *args: Any, **kwargs: Any) -> None:
-        if not trainer.sanity_checking:
-            self._tick(trainer, "validation")
-
-    def on_train_epoch_end(self, trainer: Any, pl_module: Any) -> None:
-        self._tick(trainer, "epoch_end")
-
-    def on_train_end(self, trainer: Any, pl_module: Any) -> None:
-        self._tick(trainer, "train_end")
-
-    def on_test_batch_start(self, trainer: Any, *args: Any, **kwargs: Any) -> None:
-        self._tick(trainer, "test")
+assert set(MOMENT_PHASES) == set(PHASES)  # every phase SignalAt knows
 
 
 # ---------------------------------------------------------------------------------------------- the schedule
@@ -202,68 +129,39 @@ def schedule(n: int, seed: int) -> list[Moment]:
 
 
 # ---------------------------------------------------------------------------------------------- the harness
-def group_alive(pgid: int) -> list[int]:
-    """The processes of group ``pgid`` that have not exited (zombies left out), read from ``/proc``."""
-    alive = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-        except OSError:
-            continue
-        fields = stat[stat.rindex(")") + 2 :].split()  # after "pid (comm) "
-        if fields[0] != "Z" and int(fields[2]) == pgid:
-            alive.append(int(entry.name))
-    return alive
+def dump_stacks(pgid: int, dump: Path) -> None:
+    """The Python stacks of every process of group ``pgid`` into ``dump``, with ``py-spy`` where it is
+    installed (a hung run's record)."""
+    if not shutil.which("py-spy"):
+        return
+    with open(dump, "w") as f:
+        for pid in group_alive(pgid):
+            f.write(f"==== py-spy dump --pid {pid}\n")
+            f.flush()
+            subprocess.run(["py-spy", "dump", "--pid", str(pid)], stdout=f, stderr=subprocess.STDOUT, timeout=60)
 
 
-def end_group(pgid: int, dump: Path | None = None) -> None:
-    """Kill every process of group ``pgid`` (after dumping their Python stacks into ``dump`` with
-    ``py-spy``, when it is installed) and wait until none is left."""
-    pids = group_alive(pgid)
-    if dump is not None and pids and shutil.which("py-spy"):
-        with open(dump, "w") as f:
-            for pid in pids:
-                f.write(f"==== py-spy dump --pid {pid}\n")
-                f.flush()
-                subprocess.run(["py-spy", "dump", "--pid", str(pid)], stdout=f, stderr=subprocess.STDOUT, timeout=60)
-    try:
-        os.killpg(pgid, signal.SIGKILL)
-    except ProcessLookupError:
-        pass
-    deadline = time.monotonic() + 30
-    while group_alive(pgid) and time.monotonic() < deadline:
-        time.sleep(0.05)
-
-
-def run_group(argv: list[str], log: Path, timeout: float, env: dict | None = None,
-              moment: Moment | None = None, watch: Path | None = None) -> dict:  # fmt: skip
-    """Run ``argv`` as a process group of its own, output to ``log``; for a timed ``moment``, send it
-    SIGTERM ``moment.delay`` s after the start or after ``watch`` appears. Returns the exit status of
-    its first process, when the last process of the group exited, and ``hung`` (killed at ``timeout``)."""
+def run_and_signal(argv: list[str], log: Path, timeout: float, env: dict | None = None,
+                   moment: Moment | None = None, watch: Path | None = None) -> dict:  # fmt: skip
+    """Run ``argv`` as a process group of its own (:func:`~image2sphere.testing.commands.process_group`:
+    whatever is left of it is killed when this returns), output to ``log``; for a timed ``moment``, send
+    SIGTERM ``moment.delay`` s after the start or after ``watch`` appears. Returns the exit status of its
+    first process (``returncode``), when the last process of the group exited (``ended``), when the
+    signal was sent (``sent``) and ``hung``: still running at ``timeout`` (its stacks then beside ``log``)."""
     start = time.monotonic()
     sent = None
-    with open(log, "w") as out:
-        proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True)
-        pgid = proc.pid
-        try:
-            while time.monotonic() - start < timeout:
-                if moment is not None and moment.timed and sent is None:
-                    since = start if moment.phase == "after_start" else _appeared(watch)
-                    if since is not None and time.monotonic() - since >= moment.delay:
-                        sent = time.time()
-                        _send(proc.pid, pgid, moment.target)
-                proc.poll()
-                if proc.returncode is not None and not group_alive(pgid):
-                    return {"returncode": proc.returncode, "ended": time.time(), "sent": sent, "hung": False}
-                time.sleep(0.02)
-            end_group(pgid, dump=log.with_suffix(".stacks.txt"))
-            proc.wait()
-            return {"returncode": proc.returncode, "ended": time.time(), "sent": sent, "hung": True}
-        except BaseException:
-            end_group(pgid)
-            raise
+    with open(log, "w") as out, process_group(argv, stdout=out, stderr=subprocess.STDOUT, env=env) as proc:
+        while time.monotonic() - start < timeout:
+            if moment is not None and moment.timed and sent is None:
+                since = start if moment.phase == "after_start" else _appeared(watch)
+                if since is not None and time.monotonic() - since >= moment.delay:
+                    sent = time.time()
+                    _send(proc.pid, moment.target)
+            if proc.poll() is not None and not group_alive(proc.pid):
+                return {"returncode": proc.returncode, "ended": time.time(), "sent": sent, "hung": False}
+            time.sleep(0.02)
+        dump_stacks(proc.pid, log.with_suffix(".stacks.txt"))
+    return {"returncode": proc.returncode, "ended": time.time(), "sent": sent, "hung": True}
 
 
 _FIRST_SEEN: dict[Path, float] = {}
@@ -277,10 +175,11 @@ def _appeared(path: Path | None) -> float | None:
     return _FIRST_SEEN.get(path)
 
 
-def _send(pid: int, pgid: int, target: str) -> None:
+def _send(pid: int, target: str) -> None:
+    """SIGTERM to the run's first process (``rank0``) or to its whole process group (``group``)."""
     try:
         if target == "group":
-            os.killpg(pgid, signal.SIGTERM)
+            os.killpg(pid, signal.SIGTERM)  # the first process leads the group
         else:
             os.kill(pid, signal.SIGTERM)
     except ProcessLookupError:
@@ -296,7 +195,7 @@ def signal_overrides(moment: Moment, stamp: Path) -> list[str]:
     if moment.timed:
         return []
     key = "+callbacks.signal_at"
-    return [f"{key}._target_=image2sphere.testing.preemption.SignalAt", f"{key}.phase={moment.phase}",
+    return [f"{key}._target_=image2sphere.testing.signal_at.SignalAt", f"{key}.phase={moment.phase}",
             f"{key}.occurrence={moment.occurrence}", f"{key}.rank={moment.rank}",
             f"{key}.target={'group' if moment.target == 'group' else 'rank'}", f"{key}.stamp={stamp}"]  # fmt: skip
 
@@ -309,7 +208,7 @@ def final_weights(run_dir: Path, resumed_from: Path) -> dict:
     return torch.load(path, map_location="cpu", weights_only=True)
 
 
-def same_metrics(a: dict, b: dict, rel: float = 1e-5) -> list[str]:
+def differing_metrics(a: dict, b: dict, rel: float = 1e-5) -> list[str]:
     """The metric keys whose values differ (timings left out)."""
     keys = {k for k, v in a.items() if isinstance(v, float) and not k.endswith("_seconds")}
     return sorted(k for k in keys if k not in b or not math.isclose(a[k], b[k], rel_tol=rel, abs_tol=1e-6))
@@ -327,7 +226,7 @@ def check_moment(moment: Moment, root: Path, data_dir: Path, reference: Path, bo
     stamp = root / "signal_sent"
     ckpt = stopped / "checkpoints" / "last.ckpt"
     give_up = bound + 240 if give_up is None else give_up
-    result = run_group(train_argv(signal_overrides(moment, stamp), data_dir, stopped), root / "stopped.log",
+    result = run_and_signal(train_argv(signal_overrides(moment, stamp), data_dir, stopped), root / "stopped.log",
                        timeout=give_up, env=env, moment=moment, watch=ckpt)  # fmt: skip
     sent = result["sent"] or (float(stamp.read_text()) if stamp.is_file() else None)
     problems = []
@@ -348,8 +247,9 @@ def check_moment(moment: Moment, root: Path, data_dir: Path, reference: Path, bo
         if (stopped / "metrics.json").is_file() and code in (0, -signal.SIGTERM):
             outcome = "finished"
             ref, got = (json.loads((d / "metrics.json").read_text()) for d in (reference, stopped))
-            if same_metrics(ref, got):
-                problems.append(f"the run finished, but with other test metrics: {same_metrics(ref, got)[:4]}")
+            differ = differing_metrics(ref, got)
+            if differ:
+                problems.append(f"the run finished, but with other test metrics: {differ[:4]}")
         elif code in (-signal.SIGTERM, -signal.SIGKILL) and not ckpt.is_file():
             outcome = "ended before the run's handlers"
         else:
@@ -373,7 +273,7 @@ def check_moment(moment: Moment, root: Path, data_dir: Path, reference: Path, bo
             if f"ckpt_path={ckpt}" not in out:
                 problems.append("rank 0 did not name the checkpoint to go on from")
             if not problems:
-                resume = run_group(train_argv([f"ckpt_path={ckpt}"], data_dir, resumed), root / "resumed.log",
+                resume = run_and_signal(train_argv([f"ckpt_path={ckpt}"], data_dir, resumed), root / "resumed.log",
                                    timeout=600, env=env)  # fmt: skip
                 if resume["hung"] or resume["returncode"] != 0:
                     problems.append(f"the resumed run failed ({resume['returncode']}, see resumed.log)")
@@ -386,7 +286,7 @@ def check_moment(moment: Moment, root: Path, data_dir: Path, reference: Path, bo
                             problems.append(f"resumed weights differ from the uninterrupted run's: {key}")
                             break
                     ref, got = (json.loads((d / "metrics.json").read_text()) for d in (reference, resumed))
-                    differ = same_metrics(ref, got)
+                    differ = differing_metrics(ref, got)
                     if differ:
                         problems.append(f"resumed test metrics differ: {differ[:4]}")
     record["problems"] = problems
@@ -416,8 +316,6 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if not Path("src/train.py").is_file():
         parser.error("run it from the repository root (python -m src.train must work there)")
-    import tempfile
-
     out = args.out or Path(tempfile.mkdtemp(prefix="preemption-"))
     out.mkdir(parents=True, exist_ok=True)
     if any(out.iterdir()):
@@ -429,7 +327,7 @@ def main(argv: list[str] | None = None) -> int:
     data_dir, reference = out / "data", out / "reference" / "run"
     reference.parent.mkdir()
     started = time.monotonic()
-    ref = run_group(train_argv([], data_dir, reference), out / "reference" / "run.log", timeout=900, env=env)
+    ref = run_and_signal(train_argv([], data_dir, reference), out / "reference" / "run.log", timeout=900, env=env)
     if ref["hung"] or ref["returncode"] != 0:
         print(f"the uninterrupted run failed ({ref['returncode']}): see {out / 'reference' / 'run.log'}")
         return 1

@@ -167,8 +167,8 @@ def test_override_keys_are_hydras(override, key):
 
 def test_config_values_follow_every_interpolation_omegaconf_resolves(tmp_path):
     """Quick. A run's config value is OmegaConf's: a plain ``${key}``, one inside a string, one through
-    ``oc.select``; one of a resolver that only a running job has (``${hydra:...}``) reads as absent."""
-    config = {"lmax": 4, "name": "l${lmax}", "alias": "${oc.select:lmax,0}", "out": "${hydra:runtime.output_dir}"}
+    ``oc.select``; one of a resolver this process does not have (a plugin's) reads as absent."""
+    config = {"lmax": 4, "name": "l${lmax}", "alias": "${oc.select:lmax,0}", "out": "${a_plugins_resolver:x}"}
     (run,), _ = find_runs([write_run(tmp_path / "run", config, [])])
     assert (run.get("name"), run.get("alias"), run.get("out", "absent")) == ("l4", 4, "absent")
     assert run.get("model.net") == {"lmax": 4}

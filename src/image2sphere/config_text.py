@@ -37,8 +37,9 @@ def override_key(override: str) -> str:
 
 def config_value(config: DictConfig | dict, key: str, default: Any = None) -> Any:
     """The value of dotted ``key`` in ``config`` (``default`` where it is absent or ``???``), interpolations
-    resolved by OmegaConf; one that cannot be resolved here (a resolver of a running Hydra job, such as
-    ``${hydra:...}``) reads as ``default`` too. Nodes come back as plain dicts and lists."""
+    resolved by OmegaConf; one that cannot be resolved here (a resolver this process has not registered, or
+    ``${hydra:...}`` outside a Hydra job, as in ``src.tables``) reads as ``default`` too. Nodes come back as
+    plain dicts and lists."""
     node = config if isinstance(config, DictConfig) else OmegaConf.create(config)
     value = OmegaConf.select(node, key, default=default, throw_on_resolution_failure=False)
     if OmegaConf.is_config(value):

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, InputNotFoundError, check_int
 from image2sphere.data.common import image_to_uint8, load_image, normalize_images
 from image2sphere.distributions.base import PoseDistribution, check_temperature, check_threshold
 from image2sphere.nn.base import method_of
@@ -87,14 +87,14 @@ class Predictor:
                 if isinstance(image, (np.ndarray, torch.Tensor)):
                     array = np.asarray(image)
                     if array.ndim != 3 or array.shape[-1] != 3 or array.dtype != np.uint8:
-                        raise ValueError(
+                        raise ConfigError(
                             f"image arrays must be uint8 of shape (H, W, 3), got {array.dtype} {array.shape}"
                         )
                     image = Image.fromarray(array)
                 pixels = image_to_uint8(image, self.image_size, name=f"number {i}")
             batch.append(normalize_images(pixels))
         if not batch:
-            raise ValueError("no images given")
+            raise ConfigError("no images given")
         return torch.stack(batch).to(self.device)
 
     @property
@@ -109,25 +109,25 @@ class Predictor:
         n = self.num_classes
         if not n:
             if class_index is not None:
-                raise ValueError(
+                raise ConfigError(
                     f"this model was trained without class input: leave class_index out (null), got {class_index!r}"
                 )
             return None
         names = f" ({', '.join(f'{i}={c}' for i, c in enumerate(self.class_names))})" if self.class_names else ""
         if class_index is None:
-            raise ValueError(f"this model takes the object class as input: pass class_index{names}")
+            raise ConfigError(f"this model takes the object class as input: pass class_index{names}")
         try:
             values = torch.as_tensor(class_index)
         except (TypeError, ValueError, RuntimeError):
             values = None
         if values is None or values.is_floating_point() or values.is_complex() or values.dtype == torch.bool:
-            raise ValueError(f"class_index must be an integer in [0, {n}){names}, got {class_index!r}")
+            raise ConfigError(f"class_index must be an integer in [0, {n}){names}, got {class_index!r}")
         values = values.reshape(-1)
         if batch_size is not None and len(values) not in (1, batch_size):
-            raise ValueError(f"class_index must be one integer or one per image ({batch_size}), got {len(values)}")
+            raise ConfigError(f"class_index must be one integer or one per image ({batch_size}), got {len(values)}")
         bad = values[(values < 0) | (values >= n)]
         if len(bad):
-            raise ValueError(
+            raise ConfigError(
                 f"class_index {bad[0].item()} is out of range: this model knows the classes 0..{n - 1}{names}"
             )
         return values.long().expand(batch_size) if batch_size is not None else values.long()
@@ -188,17 +188,17 @@ def predict(
 
     image_path = Path(image)
     if not image_path.is_file():
-        raise FileNotFoundError(f"image not found: {image_path}")
+        raise InputNotFoundError(f"image not found: {image_path}")
     asked = Path(output) if output else image_path.with_name(f"{image_path.stem}_so3.png")
     figure_format(asked, "output")
     level = check_streamed_level(level)
     check_int("top_k", top_k, 1)
     if isinstance(radius_deg, bool) or not isinstance(radius_deg, (int, float)) or not 0 < radius_deg < 180:
-        raise ValueError(f"radius_deg must be in (0, 180) degrees, got {radius_deg!r}")
+        raise ConfigError(f"radius_deg must be in (0, 180) degrees, got {radius_deg!r}")
     if threshold is not None:
         threshold = float(check_threshold(threshold))
     if recalibration not in ("auto", "off"):
-        raise ValueError(f"recalibration must be auto or off, got {recalibration!r}")
+        raise ConfigError(f"recalibration must be auto or off, got {recalibration!r}")
     checkpoint_file(ckpt_path)  # not a file (e.g. a run's directory): one line, with the checkpoints found
     predictor = Predictor.from_checkpoint(ckpt_path, device, recalibration=recalibration == "auto")
     if predictor.temperature is not None:

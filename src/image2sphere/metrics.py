@@ -34,7 +34,7 @@ from typing import NamedTuple
 
 import torch
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.data.common import stable_seed
 from image2sphere.distributions.base import LOG_UNIFORM_DENSITY, PoseDistribution
 from image2sphere.distributions.hdr_masses import tie_tolerance
@@ -72,7 +72,7 @@ HDR_COVERAGE_KEYS = tuple(f"hdr_coverage_{round(100 * a)}" for a in HDR_LEVELS)
 def min_angular_error_deg(pred: torch.Tensor, targets: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
     """Angle ``(B,)`` in degrees from ``pred (B, 3, 3)`` to the nearest real target."""
     if pred.ndim != 3 or pred.shape[-2:] != (3, 3):
-        raise ValueError(f"pred must have shape (B, 3, 3), got {tuple(pred.shape)}")
+        raise ConfigError(f"pred must have shape (B, 3, 3), got {tuple(pred.shape)}")
     mask = check_targets(targets, mask, len(pred))
     err = geodesic_distance_deg(pred[:, None].to(targets.dtype), targets)  # [B, M]
     return err.masked_fill(~mask, math.inf).min(dim=1).values
@@ -99,7 +99,7 @@ def _check_grid_logits(grid_logits: torch.Tensor, level: int) -> tuple[int, int]
     level = check_level(level)
     n_points = math.prod(so3_grid_size(level))
     if grid_logits.ndim != 2 or grid_logits.shape[1] != n_points:
-        raise ValueError(
+        raise ConfigError(
             f"grid_logits must have shape (B, {n_points}) for level {level}, got {tuple(grid_logits.shape)}"
         )
     return level, n_points
@@ -128,7 +128,7 @@ def hdr_levels(mass_above: torch.Tensor, mass_tied: torch.Tensor, u: torch.Tenso
     ``q < alpha``.
     """
     if not (mass_above.shape == mass_tied.shape == u.shape):
-        raise ValueError(
+        raise ConfigError(
             f"mass_above, mass_tied and u must have one shape, got {tuple(mass_above.shape)}, "
             f"{tuple(mass_tied.shape)} and {tuple(u.shape)}"
         )
@@ -176,7 +176,7 @@ def density_pairs(
     """
     mask = check_targets(targets, mask, dist.batch_size)
     if u.shape != mask.shape:
-        raise ValueError(f"u must have the shape of mask {tuple(mask.shape)}, got {tuple(u.shape)}")
+        raise ConfigError(f"u must have the shape of mask {tuple(mask.shape)}, got {tuple(u.shape)}")
     summary = dist.grid_summary(level, fill_padding(targets, mask))
     n_points = math.prod(so3_grid_size(level))
     log_density = summary.log_prob + math.log(n_points) + LOG_UNIFORM_DENSITY  # [B, M]
@@ -203,7 +203,7 @@ def hdr_levels_from_grid_logits(
     level, n_points = _check_grid_logits(grid_logits, level)
     mask = check_targets(targets, mask, len(grid_logits))
     if u.shape != mask.shape:
-        raise ValueError(f"u must have the shape of mask {tuple(mask.shape)}, got {tuple(u.shape)}")
+        raise ConfigError(f"u must have the shape of mask {tuple(mask.shape)}, got {tuple(u.shape)}")
     index = so3_healpix_nearest_index(fill_padding(targets, mask), level).to(grid_logits.device)  # [B, M]
     value = grid_logits.gather(1, index)  # [B, M]
     tol = torch.where(torch.isfinite(value), tie_tolerance(value), torch.zeros_like(value))
@@ -219,7 +219,7 @@ def hdr_coverage_counts(hdr_level: torch.Tensor, mask: torch.Tensor | None = Non
     """For each image, how many of its real targets lie in the HDR of each mass of :data:`HDR_LEVELS`
     (``q < alpha``): ``(B, len(HDR_LEVELS))`` int64, from HDR levels ``(B, M)`` (NaN on padding)."""
     if hdr_level.ndim != 2:
-        raise ValueError(f"hdr_level must have shape (B, M), got {tuple(hdr_level.shape)}")
+        raise ConfigError(f"hdr_level must have shape (B, M), got {tuple(hdr_level.shape)}")
     real = ~torch.isnan(hdr_level) if mask is None else mask.to(hdr_level.device)
     alphas = torch.tensor(HDR_LEVELS, dtype=torch.float64, device=hdr_level.device)
     inside = (hdr_level.double()[..., None] < alphas) & real[..., None]  # [B, M, L]

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 from matplotlib.figure import Figure
 
+from image2sphere.checks import ConfigError
 from image2sphere.distributions.base import PoseDistribution
 from image2sphere.so3.grid import so3_healpix_index_to_matrix
 
@@ -50,7 +51,7 @@ def rotation_to_plot_coords(R: torch.Tensor | np.ndarray) -> tuple[np.ndarray, n
     ``[-pi/2, pi/2]`` and a hue in ``[0, 1)``, from XYX Euler angles (see the module docstring)."""
     R = np.asarray(R.detach().cpu() if isinstance(R, torch.Tensor) else R, dtype=np.float64)
     if R.shape[-2:] != (3, 3):
-        raise ValueError(f"rotations must have shape (..., 3, 3), got {R.shape}")
+        raise ConfigError(f"rotations must have shape (..., 3, 3), got {R.shape}")
     # R e_x = (cos b, sin a sin b, -cos a sin b); R^T e_x = (cos b, sin b sin g, sin b cos g)
     beta = np.arccos(np.clip(R[..., 0, 0], -1.0, 1.0))
     alpha = np.arctan2(R[..., 1, 0], -R[..., 2, 0])
@@ -99,7 +100,7 @@ def plot_so3_distribution(
 
     if dist is not None:
         if dist.batch_size != 1:
-            raise ValueError(f"plot one distribution at a time (batch of 1), got a batch of {dist.batch_size}")
+            raise ConfigError(f"plot one distribution at a time (batch of 1), got a batch of {dist.batch_size}")
         if not dist.has_density:  # a point estimate: one point, drawn at full size
             rotations, probs, threshold = dist.mode().detach().cpu().double(), np.ones(1), None
         else:
@@ -108,7 +109,7 @@ def plot_so3_distribution(
             rotations = so3_healpix_index_to_matrix(index.cpu(), level, dtype=torch.float64)
             probs = prob.cpu().double()
     elif rotations is None or probs is None:
-        raise ValueError("pass dist, or rotations and probs")
+        raise ConfigError("pass dist, or rotations and probs")
     probs = np.asarray(probs.detach().cpu() if isinstance(probs, torch.Tensor) else probs, dtype=np.float64)
     if threshold is not None:
         keep = probs >= threshold
@@ -170,7 +171,7 @@ def plot_reliability(
     from image2sphere.metrics import HDR_COVERAGE_KEYS, HDR_LEVELS
 
     if not all(key in metrics for key in HDR_COVERAGE_KEYS) or "calibration_ece" not in metrics:
-        raise ValueError(
+        raise ConfigError(
             "metrics have no calibration (hdr_coverage_10 ... hdr_coverage_90, calibration_ece): "
             "a point estimate has no density to be calibrated"
         )
@@ -213,7 +214,7 @@ def figure_format(path: str | Path, key: str = "path") -> str:
     if suffix not in FIGURE_FORMATS:
         known = ", ".join(f".{e}" for e in FIGURE_FORMATS)
         got = f"extension .{suffix}" if suffix else "no extension"
-        raise ValueError(f"{key}={path} has {got}: a plot is written as one of {known}; choose such a file name")
+        raise ConfigError(f"{key}={path} has {got}: a plot is written as one of {known}; choose such a file name")
     return FIGURE_FORMATS[suffix]
 
 

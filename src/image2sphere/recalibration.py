@@ -44,7 +44,7 @@ from typing import NamedTuple
 
 import torch
 
-from image2sphere.checks import check_int, check_number
+from image2sphere.checks import ConfigError, check_int, check_number
 from image2sphere.distributions.base import LOG_UNIFORM_DENSITY, PoseDistribution, check_temperature
 from image2sphere.metrics import HDR_LEVELS, density_pairs, hdr_coverage_counts
 from image2sphere.rotation_sets import check_targets, fill_padding
@@ -110,10 +110,10 @@ class Recalibration:
     def from_dict(cls, data: dict, source: str = "the checkpoint") -> Recalibration:
         """Back from :meth:`to_dict`; ``ValueError`` naming ``source`` when a field is missing or wrong."""
         if not isinstance(data, dict):
-            raise ValueError(f"the recalibration stored in {source} is not a dict: {type(data).__name__}")
+            raise ConfigError(f"the recalibration stored in {source} is not a dict: {type(data).__name__}")
         missing = sorted(set(cls.__dataclass_fields__) - set(data) - {"class_temperatures", "degenerate_temperature"})
         if missing:
-            raise ValueError(f"the recalibration stored in {source} lacks {', '.join(missing)}")
+            raise ConfigError(f"the recalibration stored in {source} lacks {', '.join(missing)}")
         fields = {k: data[k] for k in cls.__dataclass_fields__ if k in data}
         fields["class_temperatures"] = tuple(float(t) for t in fields.get("class_temperatures", ()))
         try:
@@ -122,7 +122,7 @@ class Recalibration:
                 check_temperature(fields["degenerate_temperature"], f"the degenerate temperature stored in {source}")
             check_level(fields["grid_level"], name=f"the grid level stored in {source}")
         except ValueError as e:
-            raise ValueError(f"{e}; fit it again with recalibration=fit") from None
+            raise ConfigError(f"{e}; fit it again with recalibration=fit") from None
         return cls(**fields)
 
     def describe(self) -> str:
@@ -224,7 +224,7 @@ def score_temperature(
         totals = reduce(totals).double().cpu()
     n = int(totals[:, 2].sum())
     if n == 0:
-        raise ValueError("no validation pair to fit a temperature on: the validation split is empty")
+        raise ConfigError("no validation pair to fit a temperature on: the validation split is empty")
     log_likelihood = _class_means(totals[:, :1], totals[:, 1])[:, 0]  # [C']
     coverage = _class_means(totals[:, 3:], totals[:, 2])  # [C', L]
     alphas = torch.tensor(HDR_LEVELS, dtype=torch.float64)
@@ -289,7 +289,7 @@ def fit_temperature(
     level = fit_level(level, images)
     low, high = (check_temperature(b, "a temperature bound") for b in bounds)
     if not low < 1.0 < high:
-        raise ValueError(f"the temperature bounds must enclose 1, got {bounds}")
+        raise ConfigError(f"the temperature bounds must enclose 1, got {bounds}")
     check_number("xatol", xatol)
     if num_classes is None:
         num_classes = 1 + max((int(b.class_index.max()) for b in batches if len(b.class_index)), default=0)
@@ -323,7 +323,7 @@ def fit_temperature(
     def headline(temperature: float) -> float:
         sums, counts = class_log_likelihoods(temperature)
         if counts.sum() == 0:
-            raise ValueError("no validation pair to fit a temperature on: the validation split is empty")
+            raise ConfigError("no validation pair to fit a temperature on: the validation split is empty")
         return float(_class_means(sums, counts).mean())
 
     temperature = search(headline)

@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import torch
 
+from image2sphere.checks import ConfigError
+
 __all__ = ["check_labels", "check_rotation_set", "check_target_mask", "check_targets", "fill_padding"]
 
 
@@ -27,7 +29,7 @@ def check_labels(rotation: object, batch: int, name: str = "rotation") -> torch.
     naming ``name``, the shape expected and the one given."""
     if not isinstance(rotation, torch.Tensor) or rotation.shape != (batch, 3, 3):
         shape = tuple(rotation.shape) if isinstance(rotation, torch.Tensor) else type(rotation).__name__
-        raise ValueError(f"{name} must have shape ({batch}, 3, 3), got {shape}")
+        raise ConfigError(f"{name} must have shape ({batch}, 3, 3), got {shape}")
     return rotation
 
 
@@ -35,13 +37,15 @@ def check_targets(targets: torch.Tensor, mask: torch.Tensor | None, batch: int |
     """Validate ``targets (B, M, 3, 3)`` and return the mask ``(B, M)`` (all real when ``None``; else bool and
     passing :func:`check_target_mask`)."""
     if targets.ndim != 4 or targets.shape[-2:] != (3, 3) or targets.shape[1] < 1:
-        raise ValueError(f"targets must have shape (B, M, 3, 3) with M >= 1, got {tuple(targets.shape)}")
+        raise ConfigError(f"targets must have shape (B, M, 3, 3) with M >= 1, got {tuple(targets.shape)}")
     if batch is not None and targets.shape[0] != batch:
-        raise ValueError(f"targets must have batch size {batch}, got {tuple(targets.shape)}")
+        raise ConfigError(f"targets must have batch size {batch}, got {tuple(targets.shape)}")
     if mask is None:
         return torch.ones(targets.shape[:2], dtype=torch.bool, device=targets.device)
     if mask.shape != targets.shape[:2] or mask.dtype != torch.bool:
-        raise ValueError(f"mask must be bool of shape {tuple(targets.shape[:2])}, got {tuple(mask.shape)} {mask.dtype}")
+        raise ConfigError(
+            f"mask must be bool of shape {tuple(targets.shape[:2])}, got {tuple(mask.shape)} {mask.dtype}"
+        )
     return check_target_mask(mask)
 
 
@@ -59,9 +63,9 @@ def check_target_mask(mask: torch.Tensor) -> torch.Tensor:
     an error far from its cause.
     """
     if not mask.any(1).all():
-        raise ValueError("every image needs at least one real rotation in mask")
+        raise ConfigError("every image needs at least one real rotation in mask")
     if not mask[:, :1].all():
-        raise ValueError(
+        raise ConfigError(
             "mask[:, 0] must be True: the first target of every image is its rendering rotation, "
             "and padding is read as it; put a real rotation first in every image's set"
         )
@@ -73,7 +77,7 @@ def check_rotation_set(output: torch.Tensor, rotations: torch.Tensor, mask: torc
     and every image's first rotation is real (:func:`check_target_mask`, the rule of the metrics too): the
     arguments of :meth:`image2sphere.nn.base.PoseNetwork.set_loss`."""
     if mask.ndim != 2 or rotations.shape != (*mask.shape, 3, 3) or len(output) != len(mask):
-        raise ValueError(
+        raise ConfigError(
             f"rotations (B, M, 3, 3) and mask (B, M) must match the output's batch of {len(output)}, "
             f"got {tuple(rotations.shape)} and {tuple(mask.shape)}"
         )

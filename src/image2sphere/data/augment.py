@@ -27,6 +27,8 @@ import math
 import numpy as np
 from PIL import Image, ImageTransform
 
+from image2sphere.checks import ConfigError
+
 __all__ = [
     "GL_TO_CV",
     "MIRROR_X",
@@ -44,7 +46,7 @@ MIRROR_X = np.diag([-1.0, 1.0, 1.0])
 def _check_matrices(R: np.ndarray, name: str) -> np.ndarray:
     R = np.asarray(R, dtype=np.float64)
     if R.shape[-2:] != (3, 3):
-        raise ValueError(f"{name} must have shape (..., 3, 3), got {R.shape}")
+        raise ConfigError(f"{name} must have shape (..., 3, 3), got {R.shape}")
     return R
 
 
@@ -63,7 +65,7 @@ def hflip_image(image: np.ndarray) -> np.ndarray:
     """Mirror an image ``(..., H, W, C)`` left to right."""
     image = np.asarray(image)
     if image.ndim < 3:
-        raise ValueError(f"image must have shape (..., H, W, C), got {image.shape}")
+        raise ConfigError(f"image must have shape (..., H, W, C), got {image.shape}")
     return image[..., ::-1, :].copy()
 
 
@@ -99,10 +101,10 @@ def box_to_virtual_camera(
     """
     x1, y1, x2, y2 = (float(v) for v in box)
     if not (x2 > x1 and y2 > y1):
-        raise ValueError(f"box must satisfy x1 < x2 and y1 < y2, got {tuple(box)}")
+        raise ConfigError(f"box must satisfy x1 < x2 and y1 < y2, got {tuple(box)}")
     K = np.asarray(K, dtype=np.float64)
     if K.shape != (3, 3):
-        raise ValueError(f"K must have shape (3, 3), got {K.shape}")
+        raise ConfigError(f"K must have shape (3, 3), got {K.shape}")
     K_inv = np.linalg.inv(K)
     corners = np.array([[x1, y1, 1.0], [x2, y1, 1.0], [x1, y2, 1.0], [x2, y2, 1.0]]).T  # [3, 4]
     rays = K_inv @ corners  # [3, 4] camera-frame directions of the corners

@@ -27,6 +27,8 @@ import numpy as np
 import torch
 from PIL import Image, UnidentifiedImageError
 
+from image2sphere.checks import ConfigError, InputNotFoundError
+
 __all__ = [
     "CORRUPT_POLICIES",
     "IMAGENET_MEAN",
@@ -48,7 +50,7 @@ log = logging.getLogger(__name__)
 CORRUPT_POLICIES = ("fail", "skip")
 
 
-class CorruptImageError(ValueError):
+class CorruptImageError(ConfigError):
     """An image file (or LMDB record) that cannot be decoded; ``source`` names it."""
 
     def __init__(self, source: str, reason: str):
@@ -56,7 +58,7 @@ class CorruptImageError(ValueError):
         super().__init__(f"cannot decode image {source} ({reason}); the file is corrupt or truncated: re-download it")
 
 
-class DatasetNotFoundError(FileNotFoundError):
+class DatasetNotFoundError(InputNotFoundError):
     """A dataset is not where the configuration says (see :func:`missing_dataset_error`)."""
 
 
@@ -74,7 +76,7 @@ def missing_dataset_error(
 
 def check_corrupt_policy(value: str, key: str) -> str:
     if value not in CORRUPT_POLICIES:
-        raise ValueError(f"{key} must be one of {CORRUPT_POLICIES}, got {value!r}")
+        raise ConfigError(f"{key} must be one of {CORRUPT_POLICIES}, got {value!r}")
     return value
 
 
@@ -178,9 +180,9 @@ def decode_image(source: str | Path | bytes, name: str | None = None) -> Image.I
             im.load()  # every pixel, so truncation is detected here
             return _to_rgb(im, name)
     except FileNotFoundError:
-        raise FileNotFoundError(f"image file not found: {name}") from None
+        raise InputNotFoundError(f"image file not found: {name}") from None
     except _UnreadablePixels as e:
-        raise ValueError(str(e)) from None
+        raise ConfigError(str(e)) from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as e:
         raise CorruptImageError(name, str(e)) from e
 
@@ -202,7 +204,7 @@ def image_to_uint8(image: Image.Image, image_size: int | None = None, name: str 
         try:
             image = _to_rgb(image, name or "(in memory)")
         except _UnreadablePixels as e:
-            raise ValueError(str(e)) from None
+            raise ConfigError(str(e)) from None
     if image_size is not None and image.size != (image_size, image_size):
         image = image.resize((image_size, image_size), Image.Resampling.BILINEAR, reducing_gap=None)
     return torch.from_numpy(np.asarray(image, dtype=np.uint8).copy())

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from image2sphere.checks import check_int, check_number
+from image2sphere.checks import ConfigError, check_int, check_number
 from image2sphere.data.common import check_corrupt_policy, missing_dataset_error, stable_seed
 from image2sphere.data.loading import EpochShuffleSampler, PaddedDataset, ShardSampler, collate_skipping_corrupt
 from image2sphere.data.modelnet import ModelNet10Dataset, check_lmdb_not_empty
@@ -236,17 +236,17 @@ class SymsolDataModule(PoseDataModule):
         super().__init__()
         if shape is not None:
             if shapes is not None and list(shape_tuple(shapes, "dataset.shapes")) != [shape]:
-                raise ValueError(
+                raise ConfigError(
                     f"dataset.shape={shape!r} and dataset.shapes={list(shapes)} disagree: set one of them "
                     "(dataset.shapes=null with dataset.shape)"
                 )
             shapes = [shape]
         if shapes is None:
-            raise ValueError("set dataset.shapes (a list) or dataset.shape (one shape)")
+            raise ConfigError("set dataset.shapes (a list) or dataset.shape (one shape)")
         self.shapes = shape_tuple(shapes, "dataset.shapes" if shape is None else "dataset.shape")
         self.on_corrupt = check_corrupt_policy(on_corrupt, "dataset.on_corrupt")
         if label not in LABEL_MODES:
-            raise ValueError(f"dataset.label must be one of {LABEL_MODES}, got {label!r}")
+            raise ConfigError(f"dataset.label must be one of {LABEL_MODES}, got {label!r}")
         for key, value in (("num_views", num_views), ("test_per_shape", test_per_shape)):
             if value is not None:
                 check_int(f"dataset.{key}", value, 1, note=" or null")
@@ -257,7 +257,7 @@ class SymsolDataModule(PoseDataModule):
         self.render = dict(render) if render is not None else None
         if root is None:
             if self.render is None or render_dir is None:
-                raise ValueError(
+                raise ConfigError(
                     "dataset.root is not set: point it at a SYMSOL download (the folder holding train/ and "
                     "test/), e.g. dataset.root=/data/symsol, or set dataset.render to render one"
                 )
@@ -316,7 +316,7 @@ class SymsolDataModule(PoseDataModule):
         r.setdefault("shapes", self.shapes)
         missing = set(self.shapes) - set(r["shapes"])
         if missing:
-            raise ValueError(f"dataset.render.shapes lacks {sorted(missing)}, which dataset.shapes uses")
+            raise ConfigError(f"dataset.render.shapes lacks {sorted(missing)}, which dataset.shapes uses")
         render_symsol(self.root, splits=splits, **r)
 
     def _rows(self, rotations, limit: int | None) -> dict[str, np.ndarray]:
@@ -332,7 +332,7 @@ class SymsolDataModule(PoseDataModule):
             train_rows, val_rows = {}, {}
             for s, r in rows.items():
                 if self.val_per_shape >= len(r):
-                    raise ValueError(
+                    raise ConfigError(
                         f"dataset.val_per_shape={self.val_per_shape} leaves no training images of {s!r} "
                         f"({len(r)} available)"
                     )
@@ -393,25 +393,25 @@ class ModelNet10DataModule(PoseDataModule):
     ):
         super().__init__()
         if root is None or str(root) == "":
-            raise ValueError(
+            raise ConfigError(
                 "dataset.root is not set: point it at the unpacked ModelNet10-SO3 folder (holding "
                 f"train_100V.Rawjpg.lmdb/ ...), e.g. dataset.root=/data/ModelNet10-SO3; get it from {GET_FROM}"
             )
         if train_split not in TRAIN_SPLITS:
-            raise ValueError(f"dataset.train_split must be one of {TRAIN_SPLITS}, got {train_split!r}")
+            raise ConfigError(f"dataset.train_split must be one of {TRAIN_SPLITS}, got {train_split!r}")
         if test_split not in MODELNET10_SPLITS:
-            raise ValueError(f"dataset.test_split must be one of {MODELNET10_SPLITS}, got {test_split!r}")
+            raise ConfigError(f"dataset.test_split must be one of {MODELNET10_SPLITS}, got {test_split!r}")
         self.val_instances_per_class = check_int("dataset.val_instances_per_class", val_instances_per_class, 0)
         self.image_size = check_int("dataset.image_size", image_size, 1)
         self.batch_size = check_int("dataset.batch_size", batch_size, 1)
         self.num_workers = num_workers  # an integer >= 0 or "auto" (checked by PoseDataModule)
         self.multiprocessing_context = multiprocessing_context  # fork, forkserver, spawn or None (checked)
         if not isinstance(pin_memory, bool):
-            raise ValueError(f"dataset.pin_memory must be true or false, got {pin_memory!r}")
+            raise ConfigError(f"dataset.pin_memory must be true or false, got {pin_memory!r}")
         self.pin_memory = pin_memory
         self.on_corrupt = check_corrupt_policy(on_corrupt, "dataset.on_corrupt")
         if isinstance(seed, bool) or not isinstance(seed, int):
-            raise ValueError(f"dataset.seed must be an integer, got {seed!r}")
+            raise ConfigError(f"dataset.seed must be an integer, got {seed!r}")
         self.seed = seed
         self.root = Path(root).expanduser()
         self.train_split = train_split
@@ -442,7 +442,7 @@ class ModelNet10DataModule(PoseDataModule):
             if not instances or k == 0:
                 continue
             if k >= len(instances):
-                raise ValueError(
+                raise ConfigError(
                     f"dataset.val_instances_per_class={k} leaves no training instances of {cls!r} "
                     f"({len(instances)} in {labels.path})"
                 )
@@ -516,7 +516,7 @@ class Pascal3DDataModule(PoseDataModule):
         super().__init__()
         self.classes = check_classes(classes)
         if objects not in OBJECT_MODES:
-            raise ValueError(f"dataset.objects must be one of {OBJECT_MODES}, got {objects!r}")
+            raise ConfigError(f"dataset.objects must be one of {OBJECT_MODES}, got {objects!r}")
         check_number("dataset.synthetic_ratio", synthetic_ratio, 0.0)
         check_int("dataset.val_per_class", val_per_class, 0)
         self.num_workers = num_workers  # an integer >= 0 or "auto" (checked by PoseDataModule)
@@ -524,7 +524,7 @@ class Pascal3DDataModule(PoseDataModule):
         check_int("dataset.image_size", image_size, 8)
         check_int("dataset.batch_size", batch_size, 1)
         if not check_number("dataset.synthetic_focal", synthetic_focal) > 0:
-            raise ValueError(f"dataset.synthetic_focal must be > 0, got {synthetic_focal!r}")
+            raise ConfigError(f"dataset.synthetic_focal must be > 0, got {synthetic_focal!r}")
         self.augment = check_augment(augment)
         self.on_corrupt = check_corrupt_policy(on_corrupt, "dataset.on_corrupt")
         self.root = Path(root)
@@ -547,7 +547,7 @@ class Pascal3DDataModule(PoseDataModule):
         objects, dropped = list_pascal3d_objects(self.root, split, self.objects, self.classes)
         log.info("PASCAL3D+ %s: %d objects kept; dropped: %s", split, len(objects), dropped or "none")
         if not objects:
-            raise ValueError(
+            raise ConfigError(
                 f"PASCAL3D+ {split} split at {self.root} has no usable objects (dropped: {dropped or 'none'}); "
                 "check the download with: python -m image2sphere.data.verify pascal3d " + str(self.root)
             )
@@ -571,7 +571,7 @@ class Pascal3DDataModule(PoseDataModule):
                 if bad:
                     log.warning("%d RenderForCNN file names do not parse and are ignored, e.g. %s", len(bad), bad[0])
                 if not synthetic:
-                    raise ValueError(f"no RenderForCNN images found under {self.synthetic_root}")
+                    raise ConfigError(f"no RenderForCNN images found under {self.synthetic_root}")
                 log.info("RenderForCNN: %d synthetic images", len(synthetic))
             self.data_train = Pascal3DDataset(
                 train, synthetic, self.synthetic_ratio, self.augment, synthetic_focal=self.synthetic_focal, **common

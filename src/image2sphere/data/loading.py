@@ -24,6 +24,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset, DistributedSampler, default_collate
 
+from image2sphere.checks import ConfigError
 from image2sphere.data.common import normalize_images, stable_seed
 
 __all__ = [
@@ -227,7 +228,7 @@ class PaddedDataset(Dataset):
 
     def __init__(self, dataset: Dataset, length: int):
         if int(length) < len(dataset):
-            raise ValueError(f"length must be at least the dataset's {len(dataset)} items, got {length}")
+            raise ConfigError(f"length must be at least the dataset's {len(dataset)} items, got {length}")
         self.dataset, self.length = dataset, int(length)
 
     def __len__(self) -> int:
@@ -245,5 +246,7 @@ class PaddedDataset(Dataset):
 
 def _check_rank(num_replicas: int, rank: int) -> tuple[int, int]:
     if int(num_replicas) < 1 or not 0 <= int(rank) < int(num_replicas):
-        raise ValueError(f"rank must lie in [0, num_replicas) and num_replicas >= 1, got rank {rank} of {num_replicas}")
+        raise ConfigError(
+            f"rank must lie in [0, num_replicas) and num_replicas >= 1, got rank {rank} of {num_replicas}"
+        )
     return int(num_replicas), int(rank)

@@ -37,6 +37,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from image2sphere.checks import ConfigError
 from image2sphere.data.common import (
     CorruptImageError,
     check_corrupt_policy,
@@ -118,7 +119,7 @@ def check_lmdb_not_empty(directory: Path) -> int:
     """The number of records of the LMDB at ``directory``; ``ValueError`` naming it when there are none."""
     entries = int(lmdb_environment(directory).stat()["entries"])
     if entries == 0:
-        raise ValueError(
+        raise ConfigError(
             f"{directory} is an empty LMDB (no records): the download or unpacking was incomplete; "
             f"re-download {GET_FROM} or point dataset.root at a complete copy"
         )
@@ -162,7 +163,7 @@ class ModelNet10Dataset(Dataset):
         labels: ModelNet10Labels | None = None,
     ):
         if split not in MODELNET10_SPLITS:
-            raise ValueError(f"split must be one of {MODELNET10_SPLITS}, got {split!r}")
+            raise ConfigError(f"split must be one of {MODELNET10_SPLITS}, got {split!r}")
         self.root = Path(root)
         self.split = split
         self.lmdb_dir = lmdb_dir(self.root, split)
@@ -176,7 +177,7 @@ class ModelNet10Dataset(Dataset):
         self.labels = labels
         self.rows = np.arange(len(labels)) if rows is None else np.asarray(rows, dtype=np.int64).reshape(-1)
         if len(self.rows) and (self.rows.min() < 0 or self.rows.max() >= len(labels)):
-            raise ValueError(f"rows must lie in [0, {len(labels)}) for {self.lmdb_dir}")
+            raise ConfigError(f"rows must lie in [0, {len(labels)}) for {self.lmdb_dir}")
         self._env: lmdb.Environment | None = None
         self._pid: int | None = None
         self._warned: set[str] = set()

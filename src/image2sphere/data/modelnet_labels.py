@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from image2sphere.checks import ConfigError, InputNotFoundError
 from image2sphere.data.common import missing_dataset_error
 from image2sphere.data.safe_io import load_pickle
 from image2sphere.so3.rotations import quaternion_to_matrix
@@ -111,7 +112,7 @@ def parse_view_id(key: str) -> tuple[str, str]:
     instance, dot, view = key.rpartition(".")
     cls, underscore, number = instance.rpartition("_")
     if not (dot and underscore and cls and number and view):
-        raise ValueError(f"view id {key!r} is not of the form {{class}}_{{instance}}.v{{view}}")
+        raise ConfigError(f"view id {key!r} is not of the form {{class}}_{{instance}}.v{{view}}")
     return cls, instance
 
 
@@ -125,7 +126,7 @@ def read_quaternion_dict(pkl: Path) -> dict[str, object]:
     plain containers: nothing of it is run)."""
     raw = load_pickle(pkl, encoding="latin1", remedy=f"re-download the dataset from {GET_FROM}")
     if not isinstance(raw, dict):
-        raise ValueError(
+        raise ConfigError(
             f"{pkl} must hold a dict view id -> quaternion (w, x, y, z), got {type(raw).__name__} (see {DOCS})"
         )
     return {(k.decode("latin1") if isinstance(k, bytes) else str(k)): v for k, v in raw.items()}
@@ -200,17 +201,17 @@ def load_modelnet10_labels(directory: str | Path) -> ModelNet10Labels:
     directory = Path(directory)
     pkl = directory / QUATERNION_FILE
     if not pkl.is_file():
-        raise FileNotFoundError(
+        raise InputNotFoundError(
             f"ModelNet10-SO(3) labels not found: {pkl} (expected {QUATERNION_FILE} inside every "
             f"{{split}}.Rawjpg.lmdb folder; see {DOCS})"
         )
     raw = read_quaternion_dict(pkl)
     if not raw:
-        raise ValueError(f"{pkl} lists no views (empty dict): re-download the dataset from {GET_FROM}")
+        raise ConfigError(f"{pkl} lists no views (empty dict): re-download the dataset from {GET_FROM}")
     keys, q, problems = quaternion_table(pkl, raw)
     if problems:
         more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
-        raise ValueError(f"{problems[0]}{more}: the file is corrupt; re-download the dataset from {GET_FROM}")
+        raise ConfigError(f"{problems[0]}{more}: the file is corrupt; re-download the dataset from {GET_FROM}")
     class_of = {c: i for i, c in enumerate(MODELNET10_CLASSES)}
     class_index = np.empty(len(keys), dtype=np.int64)
     instances = []
@@ -218,9 +219,9 @@ def load_modelnet10_labels(directory: str | Path) -> ModelNet10Labels:
         try:
             cls, instance = parse_view_id(key)
         except ValueError as e:
-            raise ValueError(f"{pkl}[{key!r}]: {e}") from None
+            raise ConfigError(f"{pkl}[{key!r}]: {e}") from None
         if cls not in class_of:
-            raise ValueError(f"{pkl}[{key!r}]: unknown class {cls!r} (known: {', '.join(MODELNET10_CLASSES)})")
+            raise ConfigError(f"{pkl}[{key!r}]: unknown class {cls!r} (known: {', '.join(MODELNET10_CLASSES)})")
         class_index[i] = class_of[cls]
         instances.append(instance)
     rotations = quaternion_wxyz_to_matrix(q).astype(np.float32)

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from PIL import ImageOps
 
-from image2sphere.checks import check_number
+from image2sphere.checks import ConfigError, check_number
 from image2sphere.data.augment import GL_TO_CV, box_to_virtual_camera, hflip_box, hflip_rotation, warp_image
 from image2sphere.data.common import (
     CorruptImageError,
@@ -206,10 +206,10 @@ def check_augment(augment: dict | None) -> dict | None:
     augment = {**DEFAULT_AUGMENT, **dict(augment)}
     unknown = set(augment) - set(DEFAULT_AUGMENT)
     if unknown:
-        raise ValueError(f"dataset.augment has unknown keys {sorted(unknown)} (known: {sorted(DEFAULT_AUGMENT)})")
+        raise ConfigError(f"dataset.augment has unknown keys {sorted(unknown)} (known: {sorted(DEFAULT_AUGMENT)})")
     if not 0 <= float(augment["box_jitter"]) < 0.5:
-        raise ValueError(f"dataset.augment.box_jitter must be in [0, 0.5), got {augment['box_jitter']!r}")
+        raise ConfigError(f"dataset.augment.box_jitter must be in [0, 0.5), got {augment['box_jitter']!r}")
     if float(augment["roll_std_deg"]) < 0:
-        raise ValueError(f"dataset.augment.roll_std_deg must be >= 0, got {augment['roll_std_deg']!r}")
+        raise ConfigError(f"dataset.augment.roll_std_deg must be >= 0, got {augment['roll_std_deg']!r}")
     return {"flip": bool(augment["flip"]), "box_jitter": float(augment["box_jitter"]),
             "roll_std_deg": float(augment["roll_std_deg"])}  # fmt: skip

@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from image2sphere.checks import ConfigError, InputNotFoundError
 from image2sphere.data.common import missing_dataset_error
 from image2sphere.so3.rotations import rotation_about_axis
 
@@ -99,7 +100,7 @@ def pascal3d_rotation(azimuth, elevation, theta) -> np.ndarray:
     """``Rz(theta) @ Rx(elevation - pi/2) @ Rz(-azimuth)`` ``(..., 3, 3)`` from angles in degrees (GL frame)."""
     a, e, t = np.broadcast_arrays(*(np.radians(np.asarray(v, dtype=np.float64)) for v in (azimuth, elevation, theta)))
     if not (np.isfinite(a).all() and np.isfinite(e).all() and np.isfinite(t).all()):
-        raise ValueError("azimuth, elevation and theta must be finite")
+        raise ConfigError("azimuth, elevation and theta must be finite")
 
     def rot(axis: str, angle: np.ndarray) -> np.ndarray:  # float64 Rx / Rz of image2sphere.so3
         return rotation_about_axis(axis, torch.from_numpy(np.array(angle, dtype=np.float64))).numpy()
@@ -175,9 +176,9 @@ def read_pascal3d_annotation(path: str | Path) -> list[dict]:
         mat = loadmat(path, squeeze_me=True, struct_as_record=False)
         objects = _as_list(mat["record"].objects)
     except FileNotFoundError:
-        raise FileNotFoundError(f"annotation file not found: {path}") from None
+        raise InputNotFoundError(f"annotation file not found: {path}") from None
     except Exception as e:  # scipy raises several types for damaged files
-        raise ValueError(
+        raise ConfigError(
             f"cannot read PASCAL3D+ annotation {path} ({type(e).__name__}: {e}); expected a .mat file holding "
             f"record.objects (see {PASCAL3D_DOCS})"
         ) from e
@@ -229,7 +230,7 @@ def check_classes(classes: Sequence[str] | str, key: str = "dataset.classes") ->
     classes = (classes,) if isinstance(classes, str) else tuple(classes)
     unknown = [c for c in classes if c not in PASCAL3D_CLASSES]
     if unknown or not classes or len(set(classes)) != len(classes):
-        raise ValueError(f"{key} must be distinct names among {PASCAL3D_CLASSES}, got {list(classes)}")
+        raise ConfigError(f"{key} must be distinct names among {PASCAL3D_CLASSES}, got {list(classes)}")
     return classes
 
 
@@ -244,12 +245,12 @@ def _split_sources(root: Path, cls: str, split: str) -> list[tuple[str, Path]]:
         ]
     if split == "test":
         return [("pascal", voc / f"{cls}_val.txt")]
-    raise ValueError(f"split must be 'train' or 'test', got {split!r}")
+    raise ConfigError(f"split must be 'train' or 'test', got {split!r}")
 
 
 def _read_ids(path: Path) -> list[str]:
     if not path.is_file():
-        raise FileNotFoundError(f"PASCAL3D+ image list not found: {path} (see {PASCAL3D_DOCS})")
+        raise InputNotFoundError(f"PASCAL3D+ image list not found: {path} (see {PASCAL3D_DOCS})")
     ids = []
     for line in path.read_text().splitlines():
         parts = line.split()
@@ -309,14 +310,14 @@ def list_pascal3d_objects(
     missing image or annotation file.
     """
     if objects not in OBJECT_MODES:
-        raise ValueError(f"dataset.objects must be one of {OBJECT_MODES}, got {objects!r}")
+        raise ConfigError(f"dataset.objects must be one of {OBJECT_MODES}, got {objects!r}")
     classes = check_classes(classes)
     kept: list[Pascal3DObject] = []
     dropped: dict[str, int] = {}
     for cls in classes:
         for image, annotation, _ in list_split_images(root, cls, split):
             if not image.is_file():
-                raise FileNotFoundError(f"image listed for PASCAL3D+ {split} is missing: {image}")
+                raise InputNotFoundError(f"image listed for PASCAL3D+ {split} is missing: {image}")
             chosen, reasons = select_objects(read_pascal3d_annotation(annotation), cls, objects, classes)
             for reason in reasons:
                 dropped[reason] = dropped.get(reason, 0) + 1
@@ -358,7 +359,7 @@ def parse_renderforcnn_name(name: str) -> tuple[str, int, int, int, int]:
     """``(synset, azimuth, elevation, tilt, distance)`` from a RenderForCNN file name."""
     m = _SYNTHETIC_NAME.match(name)
     if m is None:
-        raise ValueError(
+        raise ConfigError(
             f"{name!r} is not a RenderForCNN image name ({{synset}}_{{md5}}_a{{az}}_e{{el}}_t{{tilt}}_d{{dist}}.png; "
             f"see {RENDERFORCNN_DOCS})"
         )

@@ -28,7 +28,7 @@ from typing import NamedTuple
 
 import torch
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.data.shapes import (
     CONE_APEX_HEIGHT,
     CONE_BASE_DEPTH,
@@ -248,12 +248,12 @@ def _quadric_interval(
 def _check_render_args(shape: str, rotations: torch.Tensor, image_size: int, supersample: int, dtype) -> None:
     check_shape(shape)
     if not isinstance(rotations, torch.Tensor):
-        raise ValueError(f"rotations must be a torch.Tensor of shape (..., 3, 3), got {type(rotations).__name__}")
+        raise ConfigError(f"rotations must be a torch.Tensor of shape (..., 3, 3), got {type(rotations).__name__}")
     check_rotation_matrix(rotations, name="rotations")
     check_int("image_size", image_size, 1)
     check_int("supersample", supersample, 1)
     if dtype not in (torch.float32, torch.float64):
-        raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
+        raise ConfigError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
 
 
 def _images_per_chunk(samples_per_image: int) -> int:

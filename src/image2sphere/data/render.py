@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, OutputExistsError, check_int
 from image2sphere.data.raycast import render
 from image2sphere.data.shapes import SHAPES, check_shape, check_shape_list
 from image2sphere.data.symmetry import equivalent_rotation_sets
@@ -91,10 +91,10 @@ def _check_splits(splits) -> dict[str, int]:
     if splits is None:
         return dict(DEFAULT_SPLITS)
     if not isinstance(splits, dict) or not splits:
-        raise ValueError(f"splits must be a non-empty dict {{name: number of images per shape}}, got {splits!r}")
+        raise ConfigError(f"splits must be a non-empty dict {{name: number of images per shape}}, got {splits!r}")
     for name, n in splits.items():
         if not isinstance(name, str) or not name or name.startswith(".") or "/" in name or "\\" in name:
-            raise ValueError(f"splits: invalid split name {name!r} (a plain directory name is needed)")
+            raise ConfigError(f"splits: invalid split name {name!r} (a plain directory name is needed)")
         check_int(f"splits[{name!r}]", n, 1)
     return dict(splits)
 
@@ -174,7 +174,7 @@ def render_symsol(
     if root.exists():
         info_path = root / _INFO_NAME
         if not root.is_dir():
-            raise FileExistsError(f"{root} exists and is not a directory; choose another directory or delete it")
+            raise OutputExistsError(f"{root} exists and is not a directory; choose another directory or delete it")
         if info_path.is_file():
             try:
                 existing = json.loads(info_path.read_text())
@@ -184,15 +184,15 @@ def render_symsol(
                 log.info("SYMSOL set in %s is complete with the same parameters: not re-rendering", root)
                 return _writer_result(root, counts, total, rendered=0, seconds=time.perf_counter() - t0)
             if isinstance(existing, dict) and existing.get("format") == "SYMSOL" and existing != params:
-                raise FileExistsError(
+                raise OutputExistsError(
                     f"{root} holds a SYMSOL set rendered with different parameters ({existing}); "
                     "choose another directory or delete it"
                 )
-            raise FileExistsError(
+            raise OutputExistsError(
                 f"{root} holds an incomplete or unreadable SYMSOL set; choose another directory or delete it"
             )
         if any(root.iterdir()):
-            raise FileExistsError(
+            raise OutputExistsError(
                 f"{root} already exists and is not a SYMSOL set rendered by this tool; "
                 "choose another directory or delete it"
             )
@@ -242,7 +242,7 @@ def render_symsol(
                 shutil.rmtree(partial, ignore_errors=True)
                 log.info("%s was completed by another process with the same parameters while rendering: using it", root)
                 return _writer_result(root, counts, total, rendered=0, seconds=time.perf_counter() - t0)
-            raise FileExistsError(
+            raise OutputExistsError(
                 f"{root} appeared or changed while rendering; the new set was not moved there. "
                 "Choose another directory or delete it"
             ) from err

@@ -35,6 +35,8 @@ from typing import IO, Any
 
 import numpy as np
 
+from image2sphere.checks import ConfigError, InputNotFoundError
+
 __all__ = [
     "DatasetFileError",
     "RestrictedUnpickler",
@@ -48,7 +50,7 @@ __all__ = [
 DEFAULT_REMEDY = "re-download the dataset (or re-extract its archive)"
 
 
-class DatasetFileError(ValueError):
+class DatasetFileError(ConfigError):
     """A dataset file that is truncated, corrupt or holds something it must not; the message names it."""
 
 
@@ -177,7 +179,7 @@ def _corrupt_archive(path: Path, error: BaseException, remedy: str, member: str 
 
 def _open_zip(path: Path, remedy: str) -> zipfile.ZipFile:
     if not path.is_file():
-        raise FileNotFoundError(f"{path} not found")
+        raise InputNotFoundError(f"{path} not found")
     try:
         return zipfile.ZipFile(path)
     except (zipfile.BadZipFile, EOFError, ValueError, OSError) as e:
@@ -209,11 +211,11 @@ def _read_member(zf: zipfile.ZipFile, info: zipfile.ZipInfo, source: str) -> np.
         elif version == (2, 0):
             shape, _, dtype = fmt.read_array_header_2_0(f)
         else:
-            raise ValueError(f".npy format version {version[0]}.{version[1]} is not supported (1.0 and 2.0 are)")
+            raise ConfigError(f".npy format version {version[0]}.{version[1]} is not supported (1.0 and 2.0 are)")
         if dtype.hasobject:
             array = _restricted_load(f, source, encoding="latin1")
             if not isinstance(array, np.ndarray) or array.shape != tuple(shape):
-                raise ValueError(f"the pickled payload is not the {tuple(shape)} array its header announces")
+                raise ConfigError(f"the pickled payload is not the {tuple(shape)} array its header announces")
             return array
     with zf.open(info) as f:
         return fmt.read_array(f, allow_pickle=False)
@@ -267,7 +269,7 @@ def open_lmdb(directory: str | Path, remedy: str = DEFAULT_REMEDY):
     directory = Path(directory)
     data = directory / "data.mdb"
     if not data.is_file():
-        raise FileNotFoundError(f"LMDB environment not found: {data}")
+        raise InputNotFoundError(f"LMDB environment not found: {data}")
     try:
         env = lmdb.open(str(directory), subdir=True, readonly=True, lock=False, readahead=False, meminit=False)
     except lmdb.Error as e:

@@ -52,6 +52,7 @@ from functools import cache
 import numpy as np
 import torch
 
+from image2sphere.checks import ConfigError
 from image2sphere.so3.groups import rotation_group
 
 __all__ = [
@@ -155,19 +156,19 @@ class ShapeGeometry:
 def check_shape(shape: str) -> str:
     """Return ``shape`` or raise ``ValueError`` listing the valid names."""
     if not isinstance(shape, str) or shape not in SHAPES:
-        raise ValueError(f"shape must be one of {', '.join(SHAPES)}; got {shape!r}")
+        raise ConfigError(f"shape must be one of {', '.join(SHAPES)}; got {shape!r}")
     return shape
 
 
 def check_shape_list(shapes, key: str = "shapes") -> list[str]:
     """``shapes`` as a list, or ``ValueError`` naming ``key`` unless it is a non-empty sequence of distinct names."""
     if isinstance(shapes, str) or not isinstance(shapes, Sequence) or not shapes:
-        raise ValueError(f"{key} must be a non-empty sequence of names from {', '.join(SHAPES)}; got {shapes!r}")
+        raise ConfigError(f"{key} must be a non-empty sequence of names from {', '.join(SHAPES)}; got {shapes!r}")
     unknown = [s for s in shapes if s not in SHAPES]
     if unknown:
-        raise ValueError(f"{key}: unknown shape(s) {unknown}; valid shapes are {', '.join(SHAPES)}")
+        raise ConfigError(f"{key}: unknown shape(s) {unknown}; valid shapes are {', '.join(SHAPES)}")
     if len(set(shapes)) != len(shapes):
-        raise ValueError(f"{key}: duplicate names in {list(shapes)}")
+        raise ConfigError(f"{key}: duplicate names in {list(shapes)}")
     return list(shapes)
 
 

@@ -59,7 +59,7 @@ from functools import cache
 import numpy as np
 import torch
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.data.shapes import SYMSOL_II_SHAPES, ShapeGeometry, check_shape, exact_matmul3, shape_geometry
 from image2sphere.so3.groups import rotation_group
 from image2sphere.so3.rotations import rotation_about_axis
@@ -140,7 +140,7 @@ def mark_visible(shape: str, rotations: torch.Tensor) -> torch.Tensor:
     """
     geom = shape_geometry(check_shape(shape))
     if not geom.marks:
-        raise ValueError(f"shape {shape!r} has no mark; marked shapes are {', '.join(SYMSOL_II_SHAPES)}")
+        raise ConfigError(f"shape {shape!r} has no mark; marked shapes are {', '.join(SYMSOL_II_SHAPES)}")
     _check_rotations(rotations)
     return _visible_from_zrow(geom, rotations[..., 2, :].to(torch.float64))
 
@@ -178,7 +178,7 @@ def equivalent_rotation_sets(
     """
     check_shape(shape)
     if rotations.ndim != 3:
-        raise ValueError(f"rotations must have shape (N, 3, 3), got {tuple(rotations.shape)}")
+        raise ConfigError(f"rotations must have shape (N, 3, 3), got {tuple(rotations.shape)}")
     check_int("chunk_size", chunk_size, 1)
     _check_rotations(rotations)
     dtype = dtype or rotations.dtype
@@ -213,6 +213,6 @@ def equivalent_rotations(shape: str, rotation: torch.Tensor) -> torch.Tensor:
     """
     if not isinstance(rotation, torch.Tensor) or rotation.shape != (3, 3):
         shape_desc = tuple(rotation.shape) if isinstance(rotation, torch.Tensor) else type(rotation).__name__
-        raise ValueError(f"rotation must be a (3, 3) tensor, got {shape_desc}")
+        raise ConfigError(f"rotation must be a (3, 3) tensor, got {shape_desc}")
     sets, counts = equivalent_rotation_sets(shape, rotation[None])
     return sets[0, : int(counts[0])]

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from image2sphere.checks import ConfigError, InputNotFoundError
 from image2sphere.data.common import (
     CorruptImageError,
     check_corrupt_policy,
@@ -88,7 +89,7 @@ class SymsolDataset(EpochDataset):
         on_corrupt: str = "fail",
     ):
         if label not in LABEL_MODES:
-            raise ValueError(f"label must be one of {LABEL_MODES}, got {label!r}")
+            raise ConfigError(f"label must be one of {LABEL_MODES}, got {label!r}")
         self.root = Path(root)
         self.split = split
         self.shapes = shape_tuple(shapes, "shapes")
@@ -108,7 +109,7 @@ class SymsolDataset(EpochDataset):
             dense, counts = rotations[shape]
             use = np.arange(len(dense)) if rows is None else np.asarray(rows[shape])
             if len(use) and (use.min() < 0 or use.max() >= len(dense)):
-                raise ValueError(f"rows for {shape!r} must lie in [0, {len(dense)})")
+                raise ConfigError(f"rows for {shape!r} must lie in [0, {len(dense)})")
             self.items += [(c, int(r)) for r in use]
             self.rotations.append(torch.from_numpy(dense))
             self.counts.append(torch.from_numpy(counts))
@@ -116,12 +117,12 @@ class SymsolDataset(EpochDataset):
         self._cache: torch.Tensor | None = None
         missing = [p for p in (self.image_path(i) for i in range(len(self.items))) if not p.is_file()]
         if missing:
-            raise FileNotFoundError(
+            raise InputNotFoundError(
                 f"{len(missing)} image(s) listed in {split_dir / 'rotations.npz'} are missing, e.g. {missing[0]}"
             )
         if cache_images:
             if self.on_corrupt == "skip":
-                raise ValueError("dataset.cache_images needs dataset.on_corrupt=fail (a cache cannot skip images)")
+                raise ConfigError("dataset.cache_images needs dataset.on_corrupt=fail (a cache cannot skip images)")
             self._cache = torch.stack([self._read(i) for i in range(len(self.items))])
 
     def image_path(self, i: int) -> Path:

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from image2sphere.checks import ConfigError, InputNotFoundError
 from image2sphere.data.safe_io import load_npz, npz_keys
 from image2sphere.data.shapes import SYMSOL_II_SHAPES
 
@@ -45,7 +46,7 @@ def _padding_rows(a: np.ndarray) -> np.ndarray:
 def _dense_from_object(path: Path, shape: str, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(dense (N, M_max, 3, 3) float32, real (N, M_max))`` of an object array of ``(M_i, 3, 3)`` arrays."""
     if a.ndim != 1:
-        raise ValueError(
+        raise ConfigError(
             f"{path}[{shape!r}]: an object array must be 1-D (one (M_i, 3, 3) array per image), got shape {a.shape} "
             f"(see {SYMSOL_DOCS})"
         )
@@ -54,13 +55,13 @@ def _dense_from_object(path: Path, shape: str, a: np.ndarray) -> tuple[np.ndarra
         try:
             r = np.asarray(r, dtype=np.float32)
         except (TypeError, ValueError):
-            raise ValueError(
+            raise ConfigError(
                 f"{path}[{shape!r}]: image {i} holds a {type(r).__name__}, not an (M, 3, 3) array of numbers"
             ) from None
         if r.shape == (3, 3):
             r = r[None]
         if r.ndim != 3 or r.shape[1:] != (3, 3):
-            raise ValueError(f"{path}[{shape!r}]: image {i} holds an array of shape {r.shape}, expected (M, 3, 3)")
+            raise ConfigError(f"{path}[{shape!r}]: image {i} holds an array of shape {r.shape}, expected (M, 3, 3)")
         rows.append(r)
     counts = np.array([len(r) for r in rows], dtype=np.int64)
     dense = np.zeros((len(rows), max(counts, default=1), 3, 3), np.float32)
@@ -122,7 +123,7 @@ def _check_rotations(path: Path, shape: str, dense: np.ndarray, real: np.ndarray
         else:
             what = f"has determinant {np.linalg.det(R):.3g} (a reflection, not a rotation)"
         details.append(f"image {i} (images/{shape}_{i:05d}.png), equivalent rotation {j} {what}")
-    raise ValueError(
+    raise ConfigError(
         f"{path}[{shape!r}]: rows {rows[:5].tolist()} are not rotation matrices (R R^T != I, det != 1 or not "
         f"finite): {'; '.join(details)} ({int(bad.sum())} bad matrices in {len(rows)} images). The file is "
         f"corrupt: re-download {SYMSOL_URL} or re-render the set"
@@ -141,7 +142,7 @@ def load_symsol_rotations(split_dir: str | Path, shapes: Sequence[str]) -> dict[
     """
     path = Path(split_dir) / "rotations.npz"
     if not path.is_file():
-        raise FileNotFoundError(
+        raise InputNotFoundError(
             f"SYMSOL rotations not found: {path} (expected {{split}}/rotations.npz next to {{split}}/images/; "
             f"see {SYMSOL_DOCS})"
         )
@@ -149,7 +150,7 @@ def load_symsol_rotations(split_dir: str | Path, shapes: Sequence[str]) -> dict[
     keys = npz_keys(path, remedy)
     for shape in shapes:
         if shape not in keys:
-            raise ValueError(
+            raise ConfigError(
                 f"{path} has no key {shape!r} (keys: {sorted(keys)}; expected one key per shape, see {SYMSOL_DOCS})"
             )
     arrays = load_npz(path, list(dict.fromkeys(shapes)), remedy)
@@ -161,20 +162,20 @@ def load_symsol_rotations(split_dir: str | Path, shapes: Sequence[str]) -> dict[
             kind = "object array"
         else:
             if a.ndim != 4 or a.shape[-2:] != (3, 3):
-                raise ValueError(f"{path}[{shape!r}] must have shape (N, M, 3, 3), got {a.shape} (see {SYMSOL_DOCS})")
+                raise ConfigError(f"{path}[{shape!r}] must have shape (N, M, 3, 3), got {a.shape} (see {SYMSOL_DOCS})")
             if a.dtype.kind not in "fiu":
-                raise ValueError(f"{path}[{shape!r}] must hold numbers (float), got dtype {a.dtype}")
+                raise ConfigError(f"{path}[{shape!r}] must hold numbers (float), got dtype {a.dtype}")
             dense = a.astype(np.float32, copy=True)
             real = ~_padding_rows(dense)
             kind = "dense" if real.all() else "padded"
         counts = real.sum(1)
         if len(dense) == 0:
-            raise ValueError(f"{path}[{shape!r}] holds no images")
+            raise ConfigError(f"{path}[{shape!r}] holds no images")
         if (counts < 1).any():
-            raise ValueError(f"{path}[{shape!r}]: rows {np.flatnonzero(counts < 1)[:5].tolist()} have no rotation")
+            raise ConfigError(f"{path}[{shape!r}]: rows {np.flatnonzero(counts < 1)[:5].tolist()} have no rotation")
         if shape not in SYMSOL_II_SHAPES and (counts != counts.max()).any():
             short = np.flatnonzero(counts != counts.max())
-            raise ValueError(
+            raise ConfigError(
                 f"{path}[{shape!r}]: rows {short[:5].tolist()} have fewer equivalent rotations ({counts[short[0]]}) "
                 f"than the others ({counts.max()}): their missing entries are all NaN or all zero, but {shape!r} is "
                 f"unmarked and has the same symmetry group in every image. The file is corrupt: re-download "

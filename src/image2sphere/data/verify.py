@@ -29,6 +29,7 @@ from pathlib import Path
 import lmdb
 import numpy as np
 
+from image2sphere.checks import ConfigError
 from image2sphere.data.common import CorruptImageError, DatasetNotFoundError, decode_image
 from image2sphere.data.modelnet import lmdb_environment
 from image2sphere.data.modelnet_labels import (
@@ -196,7 +197,7 @@ def verify_modelnet10(
     report = VerifyReport(DATASET_NAME, root)
     unknown = [s for s in splits if s not in MODELNET10_SPLITS]
     if unknown:
-        raise ValueError(f"splits must be among {MODELNET10_SPLITS}, got {unknown}")
+        raise ConfigError(f"splits must be among {MODELNET10_SPLITS}, got {unknown}")
     if not root.is_dir():
         report.problems.append(
             f"{root} does not exist: expected the unpacked ModelNet10-SO3 folder from {GET_FROM} (see {DOCS})"
@@ -388,7 +389,7 @@ def verify(dataset: str, root: str | Path, decode: bool = True, synthetic: str |
         return verify_modelnet10(root, decode=decode, progress=progress)
     if dataset == "pascal3d":
         return verify_pascal3d(root, synthetic, decode=decode, decode_synthetic=decode_synthetic, progress=progress)
-    raise ValueError(f"dataset must be one of {DATASETS}, got {dataset!r}")
+    raise ConfigError(f"dataset must be one of {DATASETS}, got {dataset!r}")
 
 
 def main(argv: list[str] | None = None) -> int:

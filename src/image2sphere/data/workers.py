@@ -31,7 +31,7 @@ import time
 
 from torch.utils.data import get_worker_info
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 
 __all__ = [
     "AUTO",
@@ -119,13 +119,13 @@ def check_multiprocessing_context(value: object, key: str = "dataset.multiproces
         return None
     method = value.strip().lower() if isinstance(value, str) else None
     if method not in START_METHODS:
-        raise ValueError(
+        raise ConfigError(
             f"{key} must be one of {', '.join(START_METHODS)} or null (null: {DEFAULT_START_METHOD}, the safe "
             f"default; fork can deadlock a worker at start), got {value!r}"
         )
     if method not in multiprocessing.get_all_start_methods():
         available = ", ".join(multiprocessing.get_all_start_methods())
-        raise ValueError(f"{key}={method} is not available on this platform (it has {available})")
+        raise ConfigError(f"{key}={method} is not available on this platform (it has {available})")
     return method
 
 

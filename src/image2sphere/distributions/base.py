@@ -47,7 +47,7 @@ import math
 
 import torch
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.distributions.grid_protocol import LOG_UNIFORM_DENSITY, GridProtocol, check_threshold
 from image2sphere.precision import float32_methods
 from image2sphere.so3.rotations import check_rotation_matrix
@@ -77,7 +77,7 @@ def check_temperature(temperature, name: str = "temperature") -> float:
     """A temperature: a finite number > 0, else ``ValueError`` naming ``name``."""
     number = isinstance(temperature, (int, float)) and not isinstance(temperature, bool)
     if not number or not math.isfinite(temperature) or temperature <= 0:
-        raise ValueError(f"{name} must be a finite number > 0 (1 leaves a distribution as it is), got {temperature!r}")
+        raise ConfigError(f"{name} must be a finite number > 0 (1 leaves a distribution as it is), got {temperature!r}")
     return float(temperature)
 
 
@@ -142,12 +142,12 @@ class PoseDistribution(GridProtocol):
     def _check_query(self, rotations: torch.Tensor) -> torch.Tensor:
         check_rotation_matrix(rotations, "rotations")
         if rotations.ndim == 4 and rotations.shape[0] != self.batch_size:
-            raise ValueError(
+            raise ConfigError(
                 f"rotations of shape (B, K, 3, 3) must have B = batch size {self.batch_size}, "
                 f"got {tuple(rotations.shape)}"
             )
         if rotations.ndim not in (3, 4):
-            raise ValueError(f"rotations must have shape (B, K, 3, 3) or (K, 3, 3), got {tuple(rotations.shape)}")
+            raise ConfigError(f"rotations must have shape (B, K, 3, 3) or (K, 3, 3), got {tuple(rotations.shape)}")
         return rotations.to(device=self.device, dtype=self.dtype)
 
 
@@ -188,7 +188,7 @@ class PointEstimate(PoseDistribution):
     def __init__(self, rotation: torch.Tensor):
         check_rotation_matrix(rotation, "rotation", atol=1e-3)
         if rotation.ndim != 3:
-            raise ValueError(f"rotation must have shape (B, 3, 3), got {tuple(rotation.shape)}")
+            raise ConfigError(f"rotation must have shape (B, 3, 3), got {tuple(rotation.shape)}")
         self.rotation = rotation
         self.batch_size, self.dtype, self.device = rotation.shape[0], rotation.dtype, rotation.device
 

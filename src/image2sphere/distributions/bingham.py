@@ -47,7 +47,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.distributions.base import PoseDistribution, check_num_components
 from image2sphere.rotation_sets import check_labels
 from image2sphere.so3.rotations import (
@@ -96,7 +96,7 @@ def bingham_log_normalizer(z: torch.Tensor) -> torch.Tensor:
     Computed in float64 (returned in ``z``'s dtype); differentiable. See the module docstring.
     """
     if z.ndim < 1 or z.shape[-1] != 3:
-        raise ValueError(f"z must have shape (..., 3), got {tuple(z.shape)}")
+        raise ConfigError(f"z must have shape (..., 3), got {tuple(z.shape)}")
     zd = z.to(torch.float64)
     t, one_minus_t, log_w = (v.to(zd.device) for v in (_DE_T, _DE_1MT, _DE_LOGW))
     z1, z2, z3 = (zd[..., i, None] for i in range(3))  # [..., 1]
@@ -141,7 +141,7 @@ def bingham_params_from_output(x: torch.Tensor, num_components: int = 1):
 def _params(x: torch.Tensor, num_components: int):
     C = check_num_components(num_components)
     if not isinstance(x, torch.Tensor) or x.ndim != 2 or x.shape[1] != C * PARAMS_PER_COMPONENT:
-        raise ValueError(
+        raise ConfigError(
             f"Bingham output must have shape (B, {C * PARAMS_PER_COMPONENT}) for {C} component(s) "
             f"({PARAMS_PER_COMPONENT} per component), got {tuple(getattr(x, 'shape', ()))}"
         )
@@ -172,30 +172,30 @@ class Bingham(PoseDistribution):
         log_weights: torch.Tensor | None = None,
     ):
         if M.ndim != 4 or M.shape[-2:] != (4, 4):
-            raise ValueError(f"M must have shape (B, C, 4, 4), got {tuple(M.shape)}")
+            raise ConfigError(f"M must have shape (B, C, 4, 4), got {tuple(M.shape)}")
         B, C = M.shape[:2]
         if z.shape != (B, C, 3):
-            raise ValueError(f"z must have shape (B, C, 3) = {(B, C, 3)}, got {tuple(z.shape)}")
+            raise ConfigError(f"z must have shape (B, C, 3) = {(B, C, 3)}, got {tuple(z.shape)}")
         if not M.is_floating_point():
-            raise ValueError(f"M must be a floating point tensor, got {M.dtype}")
+            raise ConfigError(f"M must be a floating point tensor, got {M.dtype}")
         with torch.no_grad():
             eye = torch.eye(4, dtype=torch.float64, device=M.device)
             Md = M.detach().double()
             err = (Md.transpose(-1, -2) @ Md - eye).abs().amax() if M.numel() else 0.0
             if not torch.isfinite(torch.as_tensor(err)) or err > 1e-3:
-                raise ValueError(f"M of shape {tuple(M.shape)} is not orthonormal: max |M^T M - I| = {float(err):.3g}")
+                raise ConfigError(f"M of shape {tuple(M.shape)} is not orthonormal: max |M^T M - I| = {float(err):.3g}")
             if not torch.isfinite(z).all() or (z > 0).any():
-                raise ValueError(f"z of shape {tuple(z.shape)} must be finite and <= 0")
+                raise ConfigError(f"z of shape {tuple(z.shape)} must be finite and <= 0")
         if weights is not None and log_weights is not None:
-            raise ValueError("give weights or log_weights, not both")
+            raise ConfigError("give weights or log_weights, not both")
         if weights is not None:
             if weights.shape != (B, C):
-                raise ValueError(f"weights must have shape (B, C) = {(B, C)}, got {tuple(weights.shape)}")
+                raise ConfigError(f"weights must have shape (B, C) = {(B, C)}, got {tuple(weights.shape)}")
             log_weights = torch.log(weights.clamp_min(torch.finfo(weights.dtype).tiny))
         if log_weights is None:
             log_weights = torch.full((B, C), -math.log(C), dtype=M.dtype, device=M.device)
         if log_weights.shape != (B, C):
-            raise ValueError(f"log_weights must have shape (B, C) = {(B, C)}, got {tuple(log_weights.shape)}")
+            raise ConfigError(f"log_weights must have shape (B, C) = {(B, C)}, got {tuple(log_weights.shape)}")
         self.M, self.z = M, z.to(M.dtype)
         self.log_weights = log_weights.to(M.dtype)
         self.num_components = C
@@ -235,7 +235,7 @@ class Bingham(PoseDistribution):
     def unnormalized_log_density(self, rotations: torch.Tensor) -> torch.Tensor:
         """The (already normalised) mixture log density ``log sum_c w_c p_c(R)``: ``(B, K)``."""
         if rotations.ndim not in (3, 4) or rotations.shape[-2:] != (3, 3):
-            raise ValueError(f"rotations must have shape (B, K, 3, 3) or (K, 3, 3), got {tuple(rotations.shape)}")
+            raise ConfigError(f"rotations must have shape (B, K, 3, 3) or (K, 3, 3), got {tuple(rotations.shape)}")
         return torch.logsumexp(self.component_log_density(rotations) + self.log_weights[..., None], dim=1)
 
     def exact_log_normalizer(self) -> torch.Tensor:

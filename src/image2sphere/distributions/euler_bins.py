@@ -38,7 +38,7 @@ import math
 
 import torch
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.distributions.base import PoseDistribution, check_temperature
 from image2sphere.rotation_sets import check_labels
 from image2sphere.so3.rotations import aet_to_matrix, check_rotation_matrix, matrix_to_aet_biternions
@@ -100,9 +100,9 @@ class EulerBins(PoseDistribution):
     def __init__(self, logits: torch.Tensor):
         if not isinstance(logits, torch.Tensor) or logits.ndim != 3 or logits.shape[1] != 3 or logits.shape[0] == 0:
             shape = tuple(logits.shape) if isinstance(logits, torch.Tensor) else type(logits).__name__
-            raise ValueError(f"Euler-bin logits must have shape (B, 3, num_bins) with B >= 1, got {shape}")
+            raise ConfigError(f"Euler-bin logits must have shape (B, 3, num_bins) with B >= 1, got {shape}")
         if not logits.is_floating_point() or not torch.isfinite(logits.detach()).all():
-            raise ValueError("Euler-bin logits must be finite floating point numbers")
+            raise ConfigError("Euler-bin logits must be finite floating point numbers")
         self.num_bins = logits.shape[-1]
         self.log_probs = torch.log_softmax(logits, dim=-1)  # [B, 3, n]
         self.batch_size, self.dtype, self.device = logits.shape[0], logits.dtype, logits.device
@@ -113,7 +113,7 @@ class EulerBins(PoseDistribution):
         """Raw network output ``x (B, 3 * num_bins)`` (azimuth, elevation, tilt logits in turn)."""
         n = check_num_bins(num_bins)
         if not isinstance(x, torch.Tensor) or x.ndim != 2 or x.shape[1] != 3 * n:
-            raise ValueError(
+            raise ConfigError(
                 f"Euler-bin output must have shape (B, {3 * n}) for {n} bins per angle, "
                 f"got {tuple(getattr(x, 'shape', ()))}"
             )

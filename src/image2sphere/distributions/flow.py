@@ -20,7 +20,7 @@ from collections.abc import Callable
 
 import torch
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.distributions.implicit import ImplicitDistribution
 
 __all__ = ["FlowDistribution"]
@@ -41,7 +41,7 @@ class FlowDistribution(ImplicitDistribution):
     def __init__(self, condition: torch.Tensor, log_prob, sample: SampleFn, width: int = 64):
         super().__init__(condition, log_prob, width)
         if not callable(sample):
-            raise ValueError(f"sample must be callable, got {type(sample).__name__}")
+            raise ConfigError(f"sample must be callable, got {type(sample).__name__}")
         self.sampler = sample
 
     def exact_log_normalizer(self) -> torch.Tensor:

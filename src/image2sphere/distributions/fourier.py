@@ -25,7 +25,7 @@ import numbers
 import torch
 from e3nn import o3
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.distributions.base import PoseDistribution, check_temperature
 from image2sphere.rotation_sets import check_target_mask, fill_padding
 from image2sphere.so3.grid import (
@@ -88,13 +88,13 @@ class SO3Distribution(PoseDistribution):
         n = n_so3_coeffs(self.lmax)
         if not isinstance(coeffs, torch.Tensor) or coeffs.ndim != 2 or coeffs.shape[1] != n:
             shape = tuple(coeffs.shape) if isinstance(coeffs, torch.Tensor) else type(coeffs).__name__
-            raise ValueError(f"coeffs must have shape (batch, {n}) for lmax={self.lmax}, got {shape}")
+            raise ConfigError(f"coeffs must have shape (batch, {n}) for lmax={self.lmax}, got {shape}")
         if not coeffs.is_floating_point():
-            raise ValueError(f"coeffs must be floating point, got {coeffs.dtype}")
+            raise ConfigError(f"coeffs must be floating point, got {coeffs.dtype}")
         if not torch.isfinite(coeffs).all():
             bad = torch.nonzero(~torch.isfinite(coeffs.detach()).all(dim=1)).flatten().tolist()
             listed = ", ".join(map(str, bad[:10])) + (", ..." if len(bad) > 10 else "")
-            raise ValueError(
+            raise ConfigError(
                 f"coeffs contain NaN or infinite values in {len(bad)} of {coeffs.shape[0]} distributions "
                 f"(batch entries {listed}); the network's output is not finite: check its input and weights"
             )
@@ -156,7 +156,7 @@ class SO3Distribution(PoseDistribution):
                             bytes_per_point=self.coeffs.element_size())  # fmt: skip
         nbytes = self.batch_size * math.prod(so3_grid_size(level)) * self.coeffs.element_size()
         if nbytes > MAX_OUTPUT_BYTES:
-            raise ValueError(
+            raise ConfigError(
                 f"full-grid logits for a batch of {self.batch_size} at level {level} need {nbytes / 2**30:.1f} GiB "
                 f"(> {MAX_OUTPUT_BYTES / 2**30:.1f} GiB); use a smaller batch, a lower level or the streamed "
                 "methods (log_normalizer, log_prob_at_index, points_above)"
@@ -178,7 +178,7 @@ class SO3Distribution(PoseDistribution):
         """
         check_int("steps", steps, 0, note=" (0: no refinement)")
         if lr is not None and (isinstance(lr, bool) or not isinstance(lr, numbers.Real) or not 0 < lr < math.inf):
-            raise ValueError(f"lr must be a finite number > 0 (or None: a tenth of the grid spacing), got {lr!r}")
+            raise ConfigError(f"lr must be a finite number > 0 (or None: a tenth of the grid spacing), got {lr!r}")
         R0 = super().mode(level)
         if not refine or steps == 0:
             return R0
@@ -245,7 +245,7 @@ class SO3Distribution(PoseDistribution):
                 log_t = math.log(t)
                 pix = torch.nonzero(pix_lse[b] - log_z[b] >= log_t).flatten()  # candidate pixels
                 if len(pix) * ev.n_gamma > 4 * max_points:
-                    raise ValueError(
+                    raise ConfigError(
                         f"threshold {t:g} keeps too many points at level {level}; raise it (the uniform "
                         f"probability is {1 / ev.n_points:.3g})"
                     )
@@ -254,7 +254,7 @@ class SO3Distribution(PoseDistribution):
                 index = (pix[:, None] * ev.n_gamma + torch.arange(ev.n_gamma, device=pix.device))[keep]
                 prob = log_p[keep].exp()
                 if len(index) > max_points:
-                    raise ValueError(f"{len(index)} points pass threshold {t:g} (> max_points={max_points})")
+                    raise ConfigError(f"{len(index)} points pass threshold {t:g} (> max_points={max_points})")
                 order = torch.argsort(prob, descending=True)
                 out.append((index[order], prob[order]))
         return out

@@ -32,7 +32,7 @@ from typing import NamedTuple
 import torch
 
 from image2sphere.batch_progress import report as report_progress
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.distributions.hdr_masses import HdrMassAccumulator, finite_or_zero, relative_exp
 from image2sphere.precision import constant_cache, float32_methods
 from image2sphere.so3.grid import (
@@ -63,13 +63,13 @@ def check_threshold(threshold, name: str = "threshold") -> torch.Tensor:
     unless every value is a probability in ``(0, 1]``."""
     message = f"{name} must be > 0 and <= 1 (a probability in (0, 1]), got {{!r}}"
     if isinstance(threshold, (bool, str)) or threshold is None:
-        raise ValueError(message.format(threshold))
+        raise ConfigError(message.format(threshold))
     try:
         values = torch.as_tensor(threshold, dtype=torch.float64).detach().cpu()
     except (TypeError, ValueError, RuntimeError):
-        raise ValueError(message.format(threshold)) from None
+        raise ConfigError(message.format(threshold)) from None
     if not ((values > 0) & (values <= 1)).all():  # NaN fails both comparisons
-        raise ValueError(message.format(threshold if values.numel() == 1 else values.tolist()))
+        raise ConfigError(message.format(threshold if values.numel() == 1 else values.tolist()))
     return values
 
 
@@ -198,7 +198,7 @@ class GridProtocol:
         n = math.prod(so3_grid_size(level))
         nbytes = self.batch_size * n * (torch.finfo(self.dtype).bits // 8)
         if nbytes > MAX_OUTPUT_BYTES:
-            raise ValueError(
+            raise ConfigError(
                 f"a value per grid point for a batch of {self.batch_size} at level {level} needs "
                 f"{nbytes / 2**30:.1f} GiB (> {MAX_OUTPUT_BYTES / 2**30:.1f} GiB); use a smaller batch or level"
             )
@@ -291,7 +291,7 @@ class GridProtocol:
                     if len(where):
                         kept[b].append((where + start, log_p[b, where].exp()))
                         if sum(len(i) for i, _ in kept[b]) > max_points:
-                            raise ValueError(
+                            raise ConfigError(
                                 f"more than max_points={max_points} points pass threshold {float(log_t[b].exp()):g} "
                                 f"at level {level}; raise it"
                             )
@@ -309,7 +309,7 @@ class GridProtocol:
         """:meth:`points_above`'s ``threshold``, checked, one per distribution: ``(B,)`` float64."""
         thresholds = check_threshold(threshold).reshape(-1)
         if thresholds.numel() not in (1, self.batch_size):
-            raise ValueError(
+            raise ConfigError(
                 f"threshold must be a number or one per distribution ({self.batch_size},), got {thresholds.numel()}"
             )
         return thresholds.expand(self.batch_size)
@@ -358,7 +358,7 @@ class GridProtocol:
                     bytes_per_point=40)  # fmt: skip
         check_int("k", k, 1)
         if isinstance(radius_deg, bool) or not isinstance(radius_deg, numbers.Real) or not 0 < radius_deg < 180:
-            raise ValueError(f"radius_deg must be in (0, 180), got {radius_deg!r}")
+            raise ConfigError(f"radius_deg must be in (0, 180), got {radius_deg!r}")
         threshold = self.default_threshold(level) if threshold is None else check_threshold(threshold)
         min_trace = 1 + 2 * math.cos(math.radians(radius_deg))
         grid = so3_healpix_grid(coarse, dtype=self.dtype).reshape(-1, 9).to(self.device)  # [N, 9]

@@ -15,6 +15,7 @@ import math
 
 import torch
 
+from image2sphere.checks import ConfigError
 from image2sphere.so3.grid_eval import exp_floor
 
 __all__ = ["HdrMassAccumulator", "finite_or_zero", "relative_exp", "tie_tolerance"]
@@ -100,7 +101,7 @@ class HdrMassAccumulator:
 
     def __init__(self, query_values: torch.Tensor, query_index: torch.Tensor, n_gamma: int | None = None):
         if query_values.ndim != 2 or query_index.shape != query_values.shape:
-            raise ValueError(
+            raise ConfigError(
                 f"query_values and query_index must have one shape (B, K), got {tuple(query_values.shape)} "
                 f"and {tuple(query_index.shape)}"
             )

@@ -25,7 +25,7 @@ from collections.abc import Callable
 
 import torch
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.distributions.base import PoseDistribution
 
 __all__ = ["CPU_ACTIVATION_ELEMENTS", "MAX_ACTIVATION_ELEMENTS", "MAX_MEMO_ELEMENTS", "ImplicitDistribution"]
@@ -72,9 +72,9 @@ class ImplicitDistribution(PoseDistribution):
     def __init__(self, features: torch.Tensor, score: ScoreFn, width: int = 256):
         if not isinstance(features, torch.Tensor) or features.ndim != 2 or features.shape[0] == 0:
             shape = tuple(features.shape) if isinstance(features, torch.Tensor) else type(features).__name__
-            raise ValueError(f"features must have shape (B, F) with B >= 1, got {shape}")
+            raise ConfigError(f"features must have shape (B, F) with B >= 1, got {shape}")
         if not callable(score):
-            raise ValueError(f"score must be callable, got {type(score).__name__}")
+            raise ConfigError(f"score must be callable, got {type(score).__name__}")
         check_int("width", width, 1)
         self.features = features
         self.score = score
@@ -92,9 +92,9 @@ class ImplicitDistribution(PoseDistribution):
         :attr:`points_per_call` rotations at a time."""
         if not isinstance(rotations, torch.Tensor) or rotations.ndim not in (3, 4) or rotations.shape[-2:] != (3, 3):
             shape = tuple(rotations.shape) if isinstance(rotations, torch.Tensor) else type(rotations).__name__
-            raise ValueError(f"rotations must have shape (K, 3, 3) or (B, K, 3, 3), got {shape}")
+            raise ConfigError(f"rotations must have shape (K, 3, 3) or (B, K, 3, 3), got {shape}")
         if rotations.ndim == 4 and rotations.shape[0] != self.batch_size:
-            raise ValueError(
+            raise ConfigError(
                 f"rotations of shape (B, K, 3, 3) must have B = batch size {self.batch_size}, "
                 f"got {tuple(rotations.shape)}"
             )

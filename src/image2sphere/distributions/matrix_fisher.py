@@ -49,7 +49,7 @@ import math
 import numpy as np
 import torch
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.distributions.base import PoseDistribution, check_temperature
 from image2sphere.precision import constant_cache
 from image2sphere.so3.rotations import proper_singular_values, proper_svd, quaternion_to_matrix
@@ -74,13 +74,13 @@ NODES_PER_PANEL = 8
 def check_parameter_matrix(M: torch.Tensor, name: str) -> torch.Tensor:
     """``ValueError`` unless ``M`` is a finite floating point ``(B, 3, 3)`` tensor."""
     if not isinstance(M, torch.Tensor):
-        raise ValueError(f"{name} must be a tensor of shape (B, 3, 3), got {type(M).__name__}")
+        raise ConfigError(f"{name} must be a tensor of shape (B, 3, 3), got {type(M).__name__}")
     if M.ndim != 3 or M.shape[-2:] != (3, 3) or M.shape[0] < 1:
-        raise ValueError(f"{name} must have shape (B, 3, 3), got {tuple(M.shape)}")
+        raise ConfigError(f"{name} must have shape (B, 3, 3), got {tuple(M.shape)}")
     if not M.is_floating_point():
-        raise ValueError(f"{name} must be a floating point tensor, got {M.dtype}")
+        raise ConfigError(f"{name} must be a floating point tensor, got {M.dtype}")
     if not torch.isfinite(M).all():
-        raise ValueError(f"{name} of shape {tuple(M.shape)} has non-finite entries")
+        raise ConfigError(f"{name} of shape {tuple(M.shape)} has non-finite entries")
     return M
 
 
@@ -132,7 +132,7 @@ def log_scaled_fisher_normalizer(s: torch.Tensor) -> torch.Tensor:
     is this plus ``s1 + s2 + s3 + log(pi^2)``. See the module docstring for the formula.
     """
     if s.shape[-1] != 3:
-        raise ValueError(f"proper singular values must have shape (..., 3), got {tuple(s.shape)}")
+        raise ConfigError(f"proper singular values must have shape (..., 3), got {tuple(s.shape)}")
     t, log_w = _half_interval_rule(s.device, s.dtype)  # [K], [K]: nodes in (0, 1)
     alpha = ((s[..., 0] - s[..., 1]) / 2).clamp_min(0)[..., None]  # [..., 1]
     beta = ((s[..., 0] + s[..., 1]) / 2).clamp_min(0)[..., None]
@@ -216,7 +216,7 @@ class MatrixFisher(PoseDistribution):
             return torch.einsum("bij,kij->bk", self.F, rotations)  # [B, 3, 3] x [K, 3, 3] -> [B, K]
         if rotations.ndim == 4 and rotations.shape[0] == self.batch_size:
             return torch.einsum("bij,bkij->bk", self.F, rotations)  # [B, 3, 3] x [B, K, 3, 3] -> [B, K]
-        raise ValueError(
+        raise ConfigError(
             f"rotations must have shape (K, 3, 3) or (B={self.batch_size}, K, 3, 3), got {tuple(rotations.shape)}"
         )
 
@@ -253,6 +253,6 @@ def matrix_fisher_nll(F: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
     ``pi^2``: the uniform distribution scores ``log(pi^2) = 2.2894``)."""
     check_parameter_matrix(F, "F")
     if not isinstance(R, torch.Tensor) or R.shape != F.shape:
-        raise ValueError(f"R must have the shape of F {tuple(F.shape)}, got {tuple(getattr(R, 'shape', ()))}")
+        raise ConfigError(f"R must have the shape of F {tuple(F.shape)}, got {tuple(getattr(R, 'shape', ()))}")
     R = R.to(F.dtype)
     return _fisher_log_normalizer(F) - torch.einsum("bij,bij->b", F, R)  # [B, 3, 3] x [B, 3, 3] -> [B]

@@ -57,7 +57,7 @@ import math
 
 import torch
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.distributions.base import PoseDistribution
 from image2sphere.distributions.matrix_fisher import (
     LOG_HAAR_VOLUME,
@@ -97,7 +97,7 @@ def rotation_laplace_log_normalizer(s: torch.Tensor) -> torch.Tensor:
     """``log c`` ``(B,)`` w.r.t. the Haar measure of volume ``pi^2`` for proper singular values
     ``s (B, 3)`` (module docstring), in ``s``'s dtype; differentiable."""
     if s.ndim != 2 or s.shape[-1] != 3:
-        raise ValueError(f"proper singular values must have shape (B, 3), got {tuple(s.shape)}")
+        raise ConfigError(f"proper singular values must have shape (B, 3), got {tuple(s.shape)}")
     terms, _ = _mixture_terms(s, LAMBDA_NODES)
     return torch.logsumexp(terms, dim=-1) - 0.5 * math.log(math.pi) + LOG_HAAR_VOLUME
 
@@ -131,7 +131,7 @@ class RotationLaplace(PoseDistribution):
         elif rotations.ndim == 4 and rotations.shape[0] == self.batch_size:
             trace = torch.einsum("bij,bkij->bk", self.A, rotations)  # [B, 3, 3] x [B, K, 3, 3] -> [B, K]
         else:
-            raise ValueError(
+            raise ConfigError(
                 f"rotations must have shape (K, 3, 3) or (B={self.batch_size}, K, 3, 3), got {tuple(rotations.shape)}"
             )
         return _laplace_log_kernel(self.A, self._s_sum()[:, None], trace)
@@ -169,7 +169,7 @@ def rotation_laplace_nll(A: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
     ``pi^2``)."""
     check_parameter_matrix(A, "A")
     if not isinstance(R, torch.Tensor) or R.shape != A.shape:
-        raise ValueError(f"R must have the shape of A {tuple(A.shape)}, got {tuple(getattr(R, 'shape', ()))}")
+        raise ConfigError(f"R must have the shape of A {tuple(A.shape)}, got {tuple(getattr(R, 'shape', ()))}")
     dist = RotationLaplace(A)
     trace = torch.einsum("bij,bij->b", A, R.to(A.dtype))[:, None]  # [B, 3, 3] x [B, 3, 3] -> [B, 1]
     return dist.exact_log_normalizer() - _laplace_log_kernel(A, dist._s_sum()[:, None], trace)[:, 0]

@@ -49,7 +49,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.distributions.base import PoseDistribution, check_num_components
 from image2sphere.rotation_sets import check_labels
 from image2sphere.so3.rotations import (
@@ -100,7 +100,7 @@ def von_mises_params_from_output(x: torch.Tensor, num_components: int = 1):
 def _params(x: torch.Tensor, num_components: int):
     C = check_num_components(num_components)
     if not isinstance(x, torch.Tensor) or x.ndim != 2 or x.shape[1] != C * PARAMS_PER_COMPONENT:
-        raise ValueError(
+        raise ConfigError(
             f"von Mises output must have shape (B, {C * PARAMS_PER_COMPONENT}) for {C} component(s) "
             f"({PARAMS_PER_COMPONENT} per component), got {tuple(getattr(x, 'shape', ()))}"
         )
@@ -160,29 +160,29 @@ class VonMisesEuler(PoseDistribution):
             or not isinstance(jacobian_floor, (int, float))
             or not 0 <= jacobian_floor < 1
         ):
-            raise ValueError(f"jacobian_floor must be a number in [0, 1), got {jacobian_floor!r}")
+            raise ConfigError(f"jacobian_floor must be a number in [0, 1), got {jacobian_floor!r}")
         if mu.ndim != 4 or mu.shape[-2:] != (3, 2):
-            raise ValueError(f"mu must have shape (B, C, 3, 2) (biternions), got {tuple(mu.shape)}")
+            raise ConfigError(f"mu must have shape (B, C, 3, 2) (biternions), got {tuple(mu.shape)}")
         if not mu.is_floating_point():
-            raise ValueError(f"mu must be a floating point tensor, got {mu.dtype}")
+            raise ConfigError(f"mu must be a floating point tensor, got {mu.dtype}")
         B, C = mu.shape[:2]
         if kappa.shape != (B, C, 3):
-            raise ValueError(f"kappa must have shape (B, C, 3) = {(B, C, 3)}, got {tuple(kappa.shape)}")
+            raise ConfigError(f"kappa must have shape (B, C, 3) = {(B, C, 3)}, got {tuple(kappa.shape)}")
         with torch.no_grad():
             if not torch.isfinite(kappa).all() or (kappa <= 0).any():
-                raise ValueError(f"kappa of shape {tuple(kappa.shape)} must be finite and > 0")
+                raise ConfigError(f"kappa of shape {tuple(kappa.shape)} must be finite and > 0")
             if not torch.isfinite(mu).all() or (torch.linalg.vector_norm(mu, dim=-1) < 1e-6).any():
-                raise ValueError(f"mu of shape {tuple(mu.shape)} must be finite non-zero (cos, sin) pairs")
+                raise ConfigError(f"mu of shape {tuple(mu.shape)} must be finite non-zero (cos, sin) pairs")
         if weights is not None and log_weights is not None:
-            raise ValueError("give weights or log_weights, not both")
+            raise ConfigError("give weights or log_weights, not both")
         if weights is not None:
             if weights.shape != (B, C):
-                raise ValueError(f"weights must have shape (B, C) = {(B, C)}, got {tuple(weights.shape)}")
+                raise ConfigError(f"weights must have shape (B, C) = {(B, C)}, got {tuple(weights.shape)}")
             log_weights = torch.log(weights.clamp_min(torch.finfo(weights.dtype).tiny))
         if log_weights is None:
             log_weights = torch.full((B, C), -math.log(C), dtype=mu.dtype, device=mu.device)
         if log_weights.shape != (B, C):
-            raise ValueError(f"log_weights must have shape (B, C) = {(B, C)}, got {tuple(log_weights.shape)}")
+            raise ConfigError(f"log_weights must have shape (B, C) = {(B, C)}, got {tuple(log_weights.shape)}")
         self.mu = mu / torch.linalg.vector_norm(mu, dim=-1, keepdim=True)
         self.kappa = kappa.to(mu.dtype)
         self.log_weights = log_weights.to(mu.dtype)
@@ -209,7 +209,7 @@ class VonMisesEuler(PoseDistribution):
     def component_log_density(self, rotations: torch.Tensor) -> torch.Tensor:
         """Normalised SO(3) log density of each component at ``(K, 3, 3)`` or ``(B, K, 3, 3)``: ``(B, C, K)``."""
         if rotations.ndim not in (3, 4) or rotations.shape[-2:] != (3, 3):
-            raise ValueError(f"rotations must have shape (B, K, 3, 3) or (K, 3, 3), got {tuple(rotations.shape)}")
+            raise ConfigError(f"rotations must have shape (B, K, 3, 3) or (K, 3, 3), got {tuple(rotations.shape)}")
         R = rotations.to(self.dtype)
         angles = torch.stack(matrix_to_aet_biternions(R), dim=-2)  # [(B,) K, 3, 2] (a, e, t)
         # cos(x_i - mu_i) = cos x cos mu + sin x sin mu, per angle  [B, C, K, 3]

@@ -20,7 +20,7 @@ from e3nn.nn import SO3Activation
 from e3nn.o3 import s2_grid
 from torch import nn
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.precision import constant_cache, float32_region
 from image2sphere.so3.wigner import check_lmax, default_dtype, n_so3_coeffs, so3_blocks, wigner_D
 
@@ -147,5 +147,7 @@ class SO3ReLU(nn.Module):
     @float32_region
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if x.shape[-1] != self.n:
-            raise ValueError(f"SO(3) signal must have shape (..., {self.n}) for lmax {self.lmax}, got {tuple(x.shape)}")
+            raise ConfigError(
+                f"SO(3) signal must have shape (..., {self.n}) for lmax {self.lmax}, got {tuple(x.shape)}"
+            )
         return self.from_grid(self.act(self.to_grid(x)))

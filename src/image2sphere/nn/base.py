@@ -42,7 +42,7 @@ from collections.abc import Callable
 import torch
 from torch import nn
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.data.common import IMAGENET_MEAN, IMAGENET_STD
 from image2sphere.distributions.base import PoseDistribution
 from image2sphere.distributions.fourier import SO3Distribution, fourier_grid_nll
@@ -58,7 +58,7 @@ INPUT_SCALINGS = ("imagenet", "unit")
 def check_input_scaling(value) -> str:
     """``value`` if it is one of :data:`INPUT_SCALINGS`, else ``ValueError`` naming the config key."""
     if not isinstance(value, str) or value not in INPUT_SCALINGS:
-        raise ValueError(
+        raise ConfigError(
             f"model.net.input_scaling must be one of {INPUT_SCALINGS}, got {value!r}: 'imagenet' feeds the "
             "encoder the ImageNet-normalised images as the data pipeline gives them, 'unit' maps them back to "
             "pixels / 255 first (the original I2S code)"
@@ -70,7 +70,7 @@ def unscale_imagenet(images: torch.Tensor) -> torch.Tensor:
     """ImageNet-normalised images ``[B, 3, H, W]`` -> ``pixels / 255`` in ``[0, 1]``: ``x * std + mean``,
     the inverse of :func:`image2sphere.data.common.normalize_images`'s normalisation."""
     if images.ndim != 4 or images.shape[1] != 3:
-        raise ValueError(f"images must have shape (batch, 3, H, W), got {tuple(images.shape)}")
+        raise ConfigError(f"images must have shape (batch, 3, H, W), got {tuple(images.shape)}")
     mean = torch.tensor(IMAGENET_MEAN, dtype=images.dtype, device=images.device)[:, None, None]
     std = torch.tensor(IMAGENET_STD, dtype=images.dtype, device=images.device)[:, None, None]
     return images * std + mean
@@ -157,10 +157,10 @@ class PoseNetwork(Float32Head):
     def class_onehot(self, class_index: torch.Tensor | None, batch: int) -> torch.Tensor:
         """``class_index`` ``(B,)`` checked and one-hot encoded: ``(B, num_classes)``."""
         if class_index is None:
-            raise ValueError(f"this model was built with num_classes={self.num_classes}: pass class_index")
+            raise ConfigError(f"this model was built with num_classes={self.num_classes}: pass class_index")
         class_index = torch.as_tensor(class_index, device=next(self.parameters()).device)
         if class_index.shape != (batch,) or ((class_index < 0) | (class_index >= self.num_classes)).any():
-            raise ValueError(
+            raise ConfigError(
                 f"class_index must be integers in [0, {self.num_classes}) of shape ({batch},), "
                 f"got shape {tuple(class_index.shape)}"
             )
@@ -252,7 +252,7 @@ def method_of(net: nn.Module) -> tuple[Callable[[torch.Tensor], PoseDistribution
             float32_region(lambda output: SO3Distribution(output, lmax)),
             float32_region(lambda output, rotation, grid_level: fourier_grid_nll(output, lmax, rotation, grid_level)),
         )
-    raise ValueError(
+    raise ConfigError(
         f"model.net must be a pose network with output_distribution() and loss() "
         f"(image2sphere.nn.base.PoseNetwork), or a network of SO(3) Fourier coefficients that "
         f"exposes its band limit as .lmax; {type(net).__name__} is neither"

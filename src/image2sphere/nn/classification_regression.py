@@ -38,7 +38,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from image2sphere.checks import check_int, check_number
+from image2sphere.checks import ConfigError, check_int, check_number
 from image2sphere.distributions.base import PointEstimate
 from image2sphere.nn.base import PoseNetwork
 from image2sphere.nn.regression import PerClassLinear
@@ -85,7 +85,7 @@ class _ClassRegressionNet(PoseNetwork):
 
     def _check_output(self, output: torch.Tensor, width: int) -> torch.Tensor:
         if not isinstance(output, torch.Tensor) or output.ndim != 2 or output.shape[1] != width:
-            raise ValueError(
+            raise ConfigError(
                 f"{type(self).__name__} output must have shape (B, {width}), got {tuple(getattr(output, 'shape', ()))}"
             )
         return output

@@ -8,6 +8,8 @@ import os
 import torch
 from torch import nn
 
+from image2sphere.checks import ConfigError
+
 __all__ = ["RESNET_DEPTHS", "ResNetEncoder"]
 
 RESNET_DEPTHS = (18, 34, 50, 101, 152)
@@ -17,11 +19,11 @@ def _load_state_dict(path: str) -> dict[str, torch.Tensor]:
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # unreadable or not a torch file
-        raise ValueError(f"encoder weights file {path!r} could not be read as a PyTorch state dict: {err}") from err
+        raise ConfigError(f"encoder weights file {path!r} could not be read as a PyTorch state dict: {err}") from err
     if isinstance(state, dict) and "state_dict" in state and isinstance(state["state_dict"], dict):
         state = state["state_dict"]
     if not isinstance(state, dict):
-        raise ValueError(f"encoder weights file {path!r} holds a {type(state).__name__}, not a state dict")
+        raise ConfigError(f"encoder weights file {path!r} holds a {type(state).__name__}, not a state dict")
     return state
 
 
@@ -41,7 +43,7 @@ class ResNetEncoder(nn.Module):
         from torchvision import models  # after the torchvision guard in image2sphere/__init__.py
 
         if depth not in RESNET_DEPTHS:
-            raise ValueError(f"encoder depth must be one of {RESNET_DEPTHS}, got {depth!r}")
+            raise ConfigError(f"encoder depth must be one of {RESNET_DEPTHS}, got {depth!r}")
         self.depth = depth
         net = getattr(models, f"resnet{depth}")(weights=None)
         if weights is not None:
@@ -52,7 +54,7 @@ class ResNetEncoder(nn.Module):
     def _load(self, net: nn.Module, weights: str, models) -> None:
         if os.path.sep in weights or weights.endswith((".pt", ".pth", ".ckpt", ".bin")) or os.path.exists(weights):
             if not os.path.isfile(weights):
-                raise ValueError(f"encoder weights file {weights!r} does not exist")
+                raise ConfigError(f"encoder weights file {weights!r} does not exist")
             state = {k: v for k, v in _load_state_dict(weights).items() if not k.startswith("fc.")}
             try:
                 missing, unexpected = net.load_state_dict(state, strict=False)
@@ -61,7 +63,7 @@ class ResNetEncoder(nn.Module):
                 missing, unexpected, problem = [], [], str(err).splitlines()[1:3]
             missing = [k for k in missing if not k.startswith("fc.")]
             if missing or unexpected or problem:
-                raise ValueError(
+                raise ConfigError(
                     f"encoder weights file {weights!r} does not fit resnet{self.depth}: "
                     f"missing {missing[:5]}, unexpected {unexpected[:5]} {problem}"
                 )
@@ -70,7 +72,7 @@ class ResNetEncoder(nn.Module):
         try:
             enum = models.get_weight(name)
         except (ValueError, KeyError, AttributeError) as err:
-            raise ValueError(
+            raise ConfigError(
                 f"unknown torchvision weights {weights!r} for resnet{self.depth}; use null, a name such as "
                 f"IMAGENET1K_V1, or a local file path"
             ) from err
@@ -91,5 +93,5 @@ class ResNetEncoder(nn.Module):
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         if images.ndim != 4 or images.shape[1] != 3:
-            raise ValueError(f"images must have shape (batch, 3, H, W), got {tuple(images.shape)}")
+            raise ConfigError(f"images must have shape (batch, 3, H, W), got {tuple(images.shape)}")
         return self.body(images)

@@ -14,6 +14,7 @@ import math
 import torch
 from torch import nn
 
+from image2sphere.checks import ConfigError
 from image2sphere.distributions.fourier import SO3Distribution, fourier_grid_nll, fourier_grid_set_nll
 from image2sphere.nn.activation import SO3ReLU
 from image2sphere.nn.base import PoseNetwork
@@ -143,18 +144,18 @@ class I2S(_FourierNetwork):
     ):
         super().__init__(encoder, image_size, lmax, num_classes, input_scaling)
         if output_init not in OUTPUT_INITS:
-            raise ValueError(f"output_init must be one of {OUTPUT_INITS}, got {output_init!r}")
+            raise ConfigError(f"output_init must be one of {OUTPUT_INITS}, got {output_init!r}")
         if init not in INITS:
-            raise ValueError(
+            raise ConfigError(
                 f"model.net.init must be one of {INITS}, got {init!r}: 'unit' (the default), 'fan_in', or "
                 "'kaiming_uniform' (the original code's S2 filter draw)"
             )
         if so3_kernel not in SO3_KERNELS:
-            raise ValueError(f"so3_kernel must be one of {SO3_KERNELS}, got {so3_kernel!r}")
+            raise ConfigError(f"so3_kernel must be one of {SO3_KERNELS}, got {so3_kernel!r}")
         if projector not in PROJECTORS:
-            raise ValueError(f"projector must be one of {PROJECTORS}, got {projector!r}")
+            raise ConfigError(f"projector must be one of {PROJECTORS}, got {projector!r}")
         if n_so3_conv not in (0, 1, 2):
-            raise ValueError(f"n_so3_conv must be 0, 1 or 2, got {n_so3_conv!r}")
+            raise ConfigError(f"n_so3_conv must be 0, 1 or 2, got {n_so3_conv!r}")
         if projector == "spatial":
             self.projector = SpatialS2Projector(
                 self.feature_channels,
@@ -233,7 +234,7 @@ class FourierMLP(_FourierNetwork):
     ):
         super().__init__(encoder, image_size, lmax, num_classes)
         if output_init not in OUTPUT_INITS:
-            raise ValueError(f"output_init must be one of {OUTPUT_INITS}, got {output_init!r}")
+            raise ConfigError(f"output_init must be one of {OUTPUT_INITS}, got {output_init!r}")
         self.register_buffer("degree_scale", degree_scale(so3_layout(self.lmax)[0], degree_power), persistent=False)
         widths = [self.feature_channels, *hidden]
         layers: list[nn.Module] = []

@@ -55,7 +55,7 @@ import torch.nn.functional as F
 from e3nn import o3
 from torch import nn
 
-from image2sphere.checks import check_int, check_number
+from image2sphere.checks import ConfigError, check_int, check_number
 from image2sphere.distributions.base import PointEstimate
 from image2sphere.nn.base import PoseNetwork
 from image2sphere.nn.projector import check_feature_size, orthographic_interpolation
@@ -172,7 +172,7 @@ def icosahedral_points(n_orbits: int = 2) -> torch.Tensor:
     orbits of 60 points (``G[g] @ base`` in the group's order) of base points inside one (2, 3, 5)
     triangle."""
     if isinstance(n_orbits, bool) or not isinstance(n_orbits, int) or not 0 <= n_orbits <= len(ORBIT_WEIGHTS):
-        raise ValueError(f"n_orbits must be an integer in 0..{len(ORBIT_WEIGHTS)}, got {n_orbits!r}")
+        raise ConfigError(f"n_orbits must be an integer in 0..{len(ORBIT_WEIGHTS)}, got {n_orbits!r}")
     return torch.from_numpy(_points_np(n_orbits).copy())
 
 
@@ -180,7 +180,7 @@ def point_action(points: torch.Tensor) -> torch.Tensor:
     """``action (60, n)`` long: ``action[g, p]`` is the index of ``G[g] @ points[p]`` among
     ``points (n, 3)``, which must be closed under the group (``AssertionError`` otherwise)."""
     if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"points must have shape (n, 3), got {tuple(points.shape)}")
+        raise ConfigError(f"points must have shape (n, 3), got {tuple(points.shape)}")
     G, _, _ = _icosahedral_tables()
     P = points.detach().cpu().double().numpy()
     moved = np.einsum("gij,pj->gpi", G, P).reshape(-1, 3)  # [60 * n, 3]
@@ -226,12 +226,12 @@ class PointSetProjector(nn.Module):
     ):
         super().__init__()
         if points.ndim != 2 or points.shape[1] != 3:
-            raise ValueError(f"points must have shape (n, 3), got {tuple(points.shape)}")
+            raise ConfigError(f"points must have shape (n, 3), got {tuple(points.shape)}")
         h, w = check_feature_size(feature_size)
         alpha, beta = o3.xyz_to_angles(points.double())  # [n] each
         visible = torch.nonzero(beta < max_beta - 1e-9).flatten()  # [k]
         if len(visible) == 0:
-            raise ValueError("no point of the set lies on the hemisphere facing the image")
+            raise ConfigError("no point of the set lies on the hemisphere facing the image")
         weight, inside = orthographic_interpolation(
             alpha[visible], beta[visible], (h, w), coverage=coverage, sigma=sigma, max_beta=max_beta,
             taper_beta=taper_beta, radius=1.0,
@@ -244,7 +244,7 @@ class PointSetProjector(nn.Module):
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         if features.ndim != 4 or features.shape[-2:] != self.inside.shape:
-            raise ValueError(
+            raise ConfigError(
                 f"feature map must have shape (batch, channels, {self.inside.shape[0]}, {self.inside.shape[1]}), "
                 f"got {tuple(features.shape)}"
             )
@@ -257,7 +257,7 @@ class PointSetProjector(nn.Module):
 
 def _check_signal(x: torch.Tensor, channels: int, size: int, what: str) -> None:
     if x.ndim != 3 or x.shape[1:] != (channels, size):
-        raise ValueError(f"{what} must have shape (batch, {channels}, {size}), got {tuple(x.shape)}")
+        raise ConfigError(f"{what} must have shape (batch, {channels}, {size}), got {tuple(x.shape)}")
 
 
 class IcosahedralLifting(nn.Module):
@@ -351,7 +351,7 @@ class IcosahedralI2S(PoseNetwork):
         check_int("group_channels", group_channels, 1)
         check_int("n_group_conv", n_group_conv, 0)
         if rotation_loss not in ROTATION_LOSSES:
-            raise ValueError(f"rotation_loss must be one of {ROTATION_LOSSES}, got {rotation_loss!r}")
+            raise ConfigError(f"rotation_loss must be one of {ROTATION_LOSSES}, got {rotation_loss!r}")
         self.residual_weight = check_number("residual_weight", residual_weight)
         self.rotation_loss = rotation_loss
         points = icosahedral_points(n_orbits)  # [n, 3]
@@ -380,7 +380,7 @@ class IcosahedralI2S(PoseNetwork):
 
     def _check_output(self, output: torch.Tensor) -> torch.Tensor:
         if not isinstance(output, torch.Tensor) or output.ndim != 3 or output.shape[1:] != (4, GROUP_ORDER):
-            raise ValueError(
+            raise ConfigError(
                 f"{type(self).__name__} output must have shape (B, 4, {GROUP_ORDER}), "
                 f"got {tuple(getattr(output, 'shape', ()))}"
             )

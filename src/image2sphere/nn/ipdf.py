@@ -33,7 +33,7 @@ import math
 import torch
 from torch import nn
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.distributions.base import LOG_UNIFORM_DENSITY
 from image2sphere.distributions.implicit import ImplicitDistribution
 from image2sphere.nn.base import Float32Head
@@ -100,7 +100,7 @@ class IPDF(Float32Head):
                                  ("n_queries", n_queries, 1), ("num_classes", num_classes, 0)):  # fmt: skip
             check_int(name, value, low)
         if query_sampling not in QUERY_SAMPLING:
-            raise ValueError(f"query_sampling must be one of {QUERY_SAMPLING}, got {query_sampling!r}")
+            raise ConfigError(f"query_sampling must be one of {QUERY_SAMPLING}, got {query_sampling!r}")
         self.encoder = encoder
         self.image_size = image_size
         self.hidden = hidden
@@ -129,17 +129,17 @@ class IPDF(Float32Head):
         """Images ``[B, 3, H, W]`` (and class indices ``[B]``) -> per-image features ``[B, F]``."""
         x = self.encode(images)  # float32 under autocast
         if x.ndim != 4 or x.shape[1] != self.feature_dim - self.num_classes:
-            raise ValueError(
+            raise ConfigError(
                 f"the encoder must return (B, {self.feature_dim - self.num_classes}, h, w), got {tuple(x.shape)}"
             )
         x = x.mean(dim=(-1, -2))  # [B, C]
         if self.num_classes == 0:
             return x
         if class_index is None:
-            raise ValueError(f"this model was built with num_classes={self.num_classes}: pass class_index")
+            raise ConfigError(f"this model was built with num_classes={self.num_classes}: pass class_index")
         class_index = torch.as_tensor(class_index, device=x.device)
         if class_index.shape != (len(x),) or ((class_index < 0) | (class_index >= self.num_classes)).any():
-            raise ValueError(
+            raise ConfigError(
                 f"class_index must be integers in [0, {self.num_classes}) of shape ({len(x)},), "
                 f"got shape {tuple(class_index.shape)}"
             )
@@ -150,16 +150,16 @@ class IPDF(Float32Head):
     def _check_features(self, features: torch.Tensor) -> None:
         if not isinstance(features, torch.Tensor) or features.ndim != 2 or features.shape[1] != self.feature_dim:
             shape = tuple(features.shape) if isinstance(features, torch.Tensor) else type(features).__name__
-            raise ValueError(f"features must have shape (B, {self.feature_dim}), got {shape}")
+            raise ConfigError(f"features must have shape (B, {self.feature_dim}), got {shape}")
 
     def score(self, features: torch.Tensor, rotations: torch.Tensor) -> torch.Tensor:
         """Unnormalised log density ``(B, K)`` of features ``(B, F)`` at rotations ``(K, 3, 3)`` (shared:
         the rotation embedding is computed once and broadcast) or ``(B, K, 3, 3)``."""
         self._check_features(features)
         if rotations.ndim not in (3, 4) or rotations.shape[-2:] != (3, 3):
-            raise ValueError(f"rotations must have shape (K, 3, 3) or (B, K, 3, 3), got {tuple(rotations.shape)}")
+            raise ConfigError(f"rotations must have shape (K, 3, 3) or (B, K, 3, 3), got {tuple(rotations.shape)}")
         if rotations.ndim == 4 and rotations.shape[0] != features.shape[0]:
-            raise ValueError(
+            raise ConfigError(
                 f"rotations of shape (B, K, 3, 3) must have B = {features.shape[0]}, got {tuple(rotations.shape)}"
             )
         rotations = rotations.to(dtype=features.dtype, device=features.device)

@@ -20,6 +20,7 @@ from e3nn import o3
 from e3nn.nn import S2Activation
 from torch import nn
 
+from image2sphere.checks import ConfigError
 from image2sphere.so3.grid import s2_healpix_grid
 from image2sphere.so3.wigner import check_lmax, degree_scale, n_s2_coeffs
 
@@ -30,18 +31,18 @@ def check_feature_size(size) -> tuple[int, int]:
     """``(h, w)`` of a feature map size given as ``int`` or ``(h, w)``; ``ValueError`` unless both are >= 1."""
     h, w = (size, size) if isinstance(size, int) else tuple(size)
     if h < 1 or w < 1:
-        raise ValueError(f"feature map size must be positive, got {size!r}")
+        raise ConfigError(f"feature map size must be positive, got {size!r}")
     return int(h), int(w)
 
 
 def check_orthographic_args(coverage: float, sigma: float, taper_beta: float, max_beta: float) -> None:
     """``ValueError`` unless ``0 < coverage <= 1``, ``sigma > 0`` and ``0 < taper_beta <= max_beta <= pi``."""
     if not 0 < coverage <= 1:
-        raise ValueError(f"coverage must be in (0, 1], got {coverage!r}")
+        raise ConfigError(f"coverage must be in (0, 1], got {coverage!r}")
     if sigma <= 0:
-        raise ValueError(f"sigma must be positive, got {sigma!r}")
+        raise ConfigError(f"sigma must be positive, got {sigma!r}")
     if not 0 < taper_beta <= max_beta <= math.pi:
-        raise ValueError(f"need 0 < taper_beta <= max_beta <= pi, got {taper_beta!r}, {max_beta!r}")
+        raise ConfigError(f"need 0 < taper_beta <= max_beta <= pi, got {taper_beta!r}, {max_beta!r}")
 
 
 def orthographic_interpolation(
@@ -128,18 +129,18 @@ class SpatialS2Projector(nn.Module):
         super().__init__()
         self.lmax = check_lmax(lmax)
         if not isinstance(subset_in_eval, bool):
-            raise ValueError(f"model.net.subset_in_eval must be true or false, got {subset_in_eval!r}")
+            raise ConfigError(f"model.net.subset_in_eval must be true or false, got {subset_in_eval!r}")
         if subset_in_eval and n_subset is None:
-            raise ValueError("model.net.subset_in_eval=true needs model.net.n_subset (the number of points to draw)")
+            raise ConfigError("model.net.subset_in_eval=true needs model.net.n_subset (the number of points to draw)")
         self.subset_in_eval = subset_in_eval
         if normalization not in ("mean", "sqrt"):
-            raise ValueError(f"normalization must be 'mean' or 'sqrt', got {normalization!r}")
+            raise ConfigError(f"normalization must be 'mean' or 'sqrt', got {normalization!r}")
         self.normalization = normalization
         h, w = check_feature_size(feature_size)
         check_orthographic_args(coverage, sigma, taper_beta, max_beta)
         alpha, beta = s2_healpix_grid(level, max_beta=max_beta, dtype=torch.float64)  # [K]
         if n_subset is not None and not 1 <= n_subset <= len(alpha):
-            raise ValueError(f"n_subset must be in 1..{len(alpha)} (grid points at level {level}), got {n_subset!r}")
+            raise ConfigError(f"n_subset must be in 1..{len(alpha)} (grid points at level {level}), got {n_subset!r}")
         self.n_subset = n_subset
         self.conv = nn.Conv2d(in_channels, sphere_channels, kernel_size=1)
         self.activation = activation
@@ -168,7 +169,7 @@ class SpatialS2Projector(nn.Module):
     def project(self, features: torch.Tensor, points: torch.Tensor | None = None) -> torch.Tensor:
         """Spatial signal on grid points ``points`` (default: all): ``[B, sphere_channels, len(points)]``."""
         if features.ndim != 4 or features.shape[-2:] != self.inside.shape:
-            raise ValueError(
+            raise ConfigError(
                 f"feature map must have shape (batch, channels, {self.inside.shape[0]}, {self.inside.shape[1]}), "
                 f"got {tuple(features.shape)}"
             )
@@ -239,7 +240,7 @@ class HarmonicS2Projector(nn.Module):
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         if features.ndim != 4:
-            raise ValueError(f"feature map must have shape (batch, channels, H, W), got {tuple(features.shape)}")
+            raise ConfigError(f"feature map must have shape (batch, channels, H, W), got {tuple(features.shape)}")
         pooled = features.mean(dim=(-1, -2))  # [B, C]
         coeffs = self.mlp(pooled).view(len(features), self.sphere_channels, n_s2_coeffs(self.lmax))
         coeffs = coeffs * self.degree_scale  # [B, S, (L+1)^2]

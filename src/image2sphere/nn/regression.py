@@ -25,7 +25,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.distributions.base import PointEstimate
 from image2sphere.nn.base import PoseNetwork
 from image2sphere.so3.rotations import geodesic_distance, project_to_so3, rotation_6d_to_matrix
@@ -83,9 +83,9 @@ class RotationRegression(PoseNetwork):
         num_classes: int = 0,
     ):
         if representation not in REPRESENTATIONS:
-            raise ValueError(f"representation must be one of {sorted(REPRESENTATIONS)}, got {representation!r}")
+            raise ConfigError(f"representation must be one of {sorted(REPRESENTATIONS)}, got {representation!r}")
         if loss not in LOSSES:
-            raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
+            raise ConfigError(f"loss must be one of {LOSSES}, got {loss!r}")
         check_int("hidden", hidden, 1)
         super().__init__(encoder, image_size, num_classes=0)
         self.num_classes = num_classes  # per-class output layers, not one-hot input channels

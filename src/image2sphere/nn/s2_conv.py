@@ -38,6 +38,7 @@ import torch
 from e3nn import o3
 from torch import nn
 
+from image2sphere.checks import ConfigError
 from image2sphere.so3.grid import s2_healpix_grid
 from image2sphere.so3.wigner import check_lmax, n_s2_coeffs, so3_layout
 
@@ -70,9 +71,9 @@ class S2Conv(nn.Module):
         super().__init__()
         self.lmax = check_lmax(lmax)
         if filter not in FILTERS:
-            raise ValueError(f"filter must be one of {FILTERS}, got {filter!r}")
+            raise ConfigError(f"filter must be one of {FILTERS}, got {filter!r}")
         if init not in INITS:
-            raise ValueError(f"init must be one of {INITS}, got {init!r}")
+            raise ConfigError(f"init must be one of {INITS}, got {init!r}")
         self.filter_kind = filter
         self.init = init
         self.in_channels, self.out_channels = in_channels, out_channels
@@ -108,7 +109,7 @@ class S2Conv(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         n = n_s2_coeffs(self.lmax)
         if x.ndim != 3 or x.shape[1:] != (self.in_channels, n):
-            raise ValueError(f"S2 input must have shape (batch, {self.in_channels}, {n}), got {tuple(x.shape)}")
+            raise ConfigError(f"S2 input must have shape (batch, {self.in_channels}, {n}), got {tuple(x.shape)}")
         xs = x[..., self.index_x]  # [B, f_in, n_so3]
         ps = self.filter()[..., self.index_psi]  # [f_in, f_out, n_so3]
         return torch.einsum("bfi,fgi->bgi", xs, ps) * self.scale  # [B, f_out, n_so3]

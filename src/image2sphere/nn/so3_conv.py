@@ -28,6 +28,7 @@ import math
 import torch
 from torch import nn
 
+from image2sphere.checks import ConfigError
 from image2sphere.so3.grid import so3_near_identity_grid
 from image2sphere.so3.wigner import check_lmax, flat_wigner, n_so3_coeffs, so3_blocks
 
@@ -64,7 +65,7 @@ class SO3Conv(nn.Module):
         if kernel is None:
             kernel = so3_near_identity_grid(max_angle, axis_level, n_angles, dtype=torch.float64)
         if init not in INITS:
-            raise ValueError(f"init must be one of {INITS}, got {init!r}")
+            raise ConfigError(f"init must be one of {INITS}, got {init!r}")
         self.init = init
         D = flat_wigner(lmax, kernel.to(torch.float64))  # [K, n_so3]
         self.register_buffer("kernel_D", D.float(), persistent=False)
@@ -84,7 +85,7 @@ class SO3Conv(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         n = n_so3_coeffs(self.lmax)
         if x.ndim != 3 or x.shape[1:] != (self.in_channels, n):
-            raise ValueError(f"SO(3) input must have shape (batch, {self.in_channels}, {n}), got {tuple(x.shape)}")
+            raise ConfigError(f"SO(3) input must have shape (batch, {self.in_channels}, {n}), got {tuple(x.shape)}")
         psi = self.filter()
         out = []
         for l, block in so3_blocks(self.lmax):

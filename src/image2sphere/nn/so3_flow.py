@@ -78,7 +78,7 @@ import threading
 import torch
 from torch import nn
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.distributions.base import LOG_UNIFORM_DENSITY
 from image2sphere.distributions.flow import FlowDistribution
 from image2sphere.nn.base import PoseNetwork
@@ -103,7 +103,7 @@ W_MAX = 0.99
 
 def _check_start(start: str, name: str = "start") -> str:
     if start not in ("identity", "random"):
-        raise ValueError(f"{name} must be 'identity' or 'random', got {start!r}")
+        raise ConfigError(f"{name} must be 'identity' or 'random', got {start!r}")
     return start
 
 
@@ -279,7 +279,7 @@ class MobiusCoupling(nn.Module):
     def __init__(self, column: int, condition_dim: int, hidden: int = 64, depth: int = 2, start: str = "identity"):
         super().__init__()
         if column not in (0, 1, 2):
-            raise ValueError(f"column must be 0, 1 or 2, got {column!r}")
+            raise ConfigError(f"column must be 0, 1 or 2, got {column!r}")
         check_int("hidden", hidden, 1)
         check_int("depth", depth, 1)
         self.i, self.j, self.k = column, (column + 1) % 3, (column + 2) % 3
@@ -465,7 +465,7 @@ class SO3Flow(nn.Module):
         """The unit quaternions ``(4, K)`` (shared; ``(4, B, K)`` with ``expand``) or ``(4, B, K)`` of
         rotations ``(K, 3, 3)`` or ``(B, K, 3, 3)``, in ``z``'s dtype."""
         if R.ndim != 3 and (R.ndim != 4 or R.shape[0] != len(z)) or R.shape[-2:] != (3, 3):
-            raise ValueError(f"rotations must have shape (K, 3, 3) or ({len(z)}, K, 3, 3), got {tuple(R.shape)}")
+            raise ConfigError(f"rotations must have shape (K, 3, 3) or ({len(z)}, K, 3, 3), got {tuple(R.shape)}")
         q = _quaternions(R.to(z))
         return q[:, None].expand(4, len(z), q.shape[1]) if expand and q.ndim == 2 else q
 

@@ -30,6 +30,7 @@ import math
 
 import torch
 
+from image2sphere.checks import ConfigError
 from image2sphere.distributions.fourier import fourier_grid_nll, fourier_grid_set_nll
 from image2sphere.nn.i2s import I2S
 from image2sphere.rotation_sets import check_rotation_set, fill_padding
@@ -51,7 +52,7 @@ def wigner_target(lmax: int, rotations: torch.Tensor) -> torch.Tensor:
 def wigner_mse(coeffs: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Mean squared error over the coefficients (last dimension): ``(...)``."""
     if coeffs.shape[-1] != target.shape[-1]:
-        raise ValueError(f"coefficients {tuple(coeffs.shape)} and target {tuple(target.shape)} differ in size")
+        raise ConfigError(f"coefficients {tuple(coeffs.shape)} and target {tuple(target.shape)} differ in size")
     return (coeffs - target).square().mean(-1)
 
 
@@ -73,7 +74,7 @@ class WignerDRegression(I2S):
             ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
             if not ok or value < low or (name == "regression_weight" and value == 0):
                 limit = "> 0" if name == "regression_weight" else ">= 0"
-                raise ValueError(f"model.net.{name} must be a finite number {limit}, got {value!r}")
+                raise ConfigError(f"model.net.{name} must be a finite number {limit}, got {value!r}")
         self.regression_weight = float(regression_weight)
         self.distribution_weight = float(distribution_weight)
 

@@ -24,7 +24,7 @@ import healpy
 import numpy as np
 import torch
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.so3.rotations import angles_to_matrix, check_rotation_matrix, rotvec_to_matrix
 
 __all__ = [
@@ -74,7 +74,7 @@ def check_level(
     (``72 * 8**level`` points, times ``bytes_per_point`` bytes) and the levels ``purpose`` allows.
     """
     if isinstance(level, bool) or not isinstance(level, numbers.Integral) or level < 0:
-        raise ValueError(f"{name} must be an integer in 0..{max_level}, got {level!r}")
+        raise ConfigError(f"{name} must be an integer in 0..{max_level}, got {level!r}")
     level = int(level)
     if level > max_level:
         detail = f" for {purpose}" if purpose else ""
@@ -89,7 +89,7 @@ def check_level(
             detail += f"; the allowed levels are 0..{max_level} (level {max_level}: {72 * 8**max_level:,} points)"
         else:
             detail += f"; the allowed levels are 0..{max_level}"
-        raise ValueError(f"{name}={level} is too fine{detail}")
+        raise ConfigError(f"{name}={level} is too fine{detail}")
     return level
 
 
@@ -124,7 +124,7 @@ def s2_healpix_grid(
     """
     nside = 2 ** check_level(level)
     if not 0 < max_beta <= math.pi:
-        raise ValueError(f"max_beta must be in (0, pi], got {max_beta!r}")
+        raise ConfigError(f"max_beta must be in (0, pi], got {max_beta!r}")
     beta, alpha = healpy.pix2ang(nside, np.arange(healpy.nside2npix(nside)), nest=False)
     keep = beta <= max_beta + 1e-12
     return torch.as_tensor(alpha[keep], dtype=dtype), torch.as_tensor(beta[keep], dtype=dtype)
@@ -163,7 +163,7 @@ def check_grid_index(index, level: int) -> torch.Tensor:
     n_points = math.prod(so3_grid_size(level))
     index = torch.as_tensor(index)
     if index.is_floating_point() or index.dtype == torch.bool or ((index < 0) | (index >= n_points)).any():
-        raise ValueError(f"grid indices must be integers in [0, {n_points}) for level {level}")
+        raise ConfigError(f"grid indices must be integers in [0, {n_points}) for level {level}")
     return index
 
 
@@ -189,7 +189,7 @@ def so3_near_identity_grid(
     """
     check_level(axis_level, "axis_level", max_level=MAX_DENSE_LEVEL)
     if not 0 < max_angle <= math.pi:
-        raise ValueError(f"max_angle must be in (0, pi], got {max_angle!r}")
+        raise ConfigError(f"max_angle must be in (0, pi], got {max_angle!r}")
     check_int("n_angles", n_angles, 1)
     alpha, beta = s2_healpix_grid(axis_level, dtype=torch.float64)
     axes = torch.stack(  # [A, 3], e3nn's angles_to_xyz
@@ -218,7 +218,7 @@ def so3_tube_grid(
     original I2S research code, offered for comparison (``I2S(so3_kernel="tube")``).
     """
     if not 0 < max_beta <= math.pi:
-        raise ValueError(f"max_beta must be in (0, pi], got {max_beta!r}")
+        raise ConfigError(f"max_beta must be in (0, pi], got {max_beta!r}")
     for name, n in (("n_alpha", n_alpha), ("n_beta", n_beta), ("n_gamma", n_gamma)):
         check_int(name, n, 1)
     a = torch.arange(n_alpha, dtype=torch.float64) * (2 * math.pi / n_alpha)

@@ -41,6 +41,7 @@ from collections.abc import Callable
 import torch
 
 from image2sphere.batch_progress import report as report_progress
+from image2sphere.checks import ConfigError
 from image2sphere.precision import constant_cache
 from image2sphere.so3.grid import (
     MAX_DENSE_LEVEL,
@@ -118,7 +119,7 @@ class HealpixGridEvaluator:
         self.dtype, self.device = dtype, _normalize_device(device)
         nbytes = _operator_numel(lmax, self.n_pix) * torch.finfo(dtype).bits // 8
         if nbytes > max_operator_bytes:
-            raise ValueError(
+            raise ConfigError(
                 f"the grid operator for lmax={lmax}, level={level} needs {nbytes / 2**30:.1f} GiB, more than "
                 f"max_operator_bytes={max_operator_bytes / 2**30:.1f} GiB; use a lower grid level"
             )
@@ -164,9 +165,9 @@ class HealpixGridEvaluator:
     def _check(self, coeffs: torch.Tensor) -> torch.Tensor:
         n = n_so3_coeffs(self.lmax)
         if coeffs.ndim != 2 or coeffs.shape[1] != n:
-            raise ValueError(f"coeffs must have shape (batch, {n}) for lmax={self.lmax}, got {tuple(coeffs.shape)}")
+            raise ConfigError(f"coeffs must have shape (batch, {n}) for lmax={self.lmax}, got {tuple(coeffs.shape)}")
         if coeffs.dtype != self.dtype or coeffs.device != self.device:
-            raise ValueError(
+            raise ConfigError(
                 f"coeffs are {coeffs.dtype} on {coeffs.device} but this evaluator is {self.dtype} on "
                 f"{self.device}; use get_grid_evaluator(lmax, level, dtype, device)"
             )
@@ -266,7 +267,7 @@ class HealpixGridEvaluator:
         B = coeffs.shape[0]
         nbytes = B * self.n_points * coeffs.element_size()
         if nbytes > max_output_bytes:
-            raise ValueError(
+            raise ConfigError(
                 f"full-grid logits for batch {B} at level {self.level} need {nbytes / 2**30:.1f} GiB "
                 f"(> max_output_bytes={max_output_bytes / 2**30:.1f} GiB); use the streamed reductions "
                 "(logsumexp, max, logits_at) or a smaller batch"
@@ -310,11 +311,11 @@ class HealpixGridEvaluator:
         if index.ndim == 1:
             index = index[None].expand(B, -1)
         if index.ndim != 2 or index.shape[0] != B or index.is_floating_point() or index.dtype == torch.bool:
-            raise ValueError(
+            raise ConfigError(
                 f"{what} must be integers of shape (K,) or ({B}, K), got {tuple(index.shape)} {index.dtype}"
             )
         if ((index < 0) | (index >= upper)).any():
-            raise ValueError(f"{what} must lie in [0, {upper}) for level {self.level}")
+            raise ConfigError(f"{what} must lie in [0, {upper}) for level {self.level}")
         return index
 
     def logits_at(self, coeffs: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
@@ -383,10 +384,10 @@ def dense_grid_logits(coeffs: torch.Tensor, lmax: int, level: int, block_points:
     n = n_so3_coeffs(lmax)
     if not isinstance(coeffs, torch.Tensor) or coeffs.ndim != 2 or coeffs.shape[1] != n:
         shape = tuple(coeffs.shape) if isinstance(coeffs, torch.Tensor) else type(coeffs).__name__
-        raise ValueError(f"coeffs must have shape (batch, {n}) for lmax={lmax}, got {shape}")
+        raise ConfigError(f"coeffs must have shape (batch, {n}) for lmax={lmax}, got {shape}")
     nbytes = coeffs.shape[0] * 72 * 8**level * coeffs.element_size()
     if nbytes > MAX_OUTPUT_BYTES:
-        raise ValueError(
+        raise ConfigError(
             f"dense grid logits for batch {coeffs.shape[0]} at level {level} need {nbytes / 2**30:.1f} GiB "
             f"(> {MAX_OUTPUT_BYTES / 2**30:.1f} GiB); use a smaller batch or level"
         )

@@ -22,6 +22,8 @@ import re
 import numpy as np
 import torch
 
+from image2sphere.checks import ConfigError
+
 __all__ = ["rotation_group"]
 
 _NAME = re.compile(r"^(?:[TOI]|[CD][1-9]\d*)$")
@@ -51,5 +53,5 @@ def rotation_group(name: str, *, sort: bool = False) -> torch.Tensor:
     float64 tensor ``(G, 3, 3)``, identity first, in scipy's order or (``sort=True``) the
     lexicographic one (module docstring). A fresh tensor on each call."""
     if not isinstance(name, str) or not _NAME.match(name):
-        raise ValueError(f"name must be 'T', 'O', 'I', 'C<n>' or 'D<n>' (n >= 1), got {name!r}")
+        raise ConfigError(f"name must be 'T', 'O', 'I', 'C<n>' or 'D<n>' (n >= 1), got {name!r}")
     return torch.from_numpy(_rotation_group_np(name, bool(sort)).copy())

@@ -34,6 +34,8 @@ import math
 import torch
 from e3nn import o3
 
+from image2sphere.checks import ConfigError
+
 __all__ = [
     "aet_biternions_to_matrix",
     "aet_to_matrix",
@@ -64,9 +66,9 @@ def _check_shape(x: torch.Tensor, tail: tuple[int, ...], name: str) -> torch.Ten
     """``ValueError`` naming the shape unless ``x`` is a tensor of shape ``(..., *tail)``."""
     want = f"(..., {', '.join(map(str, tail))})" if tail else "(...)"
     if not isinstance(x, torch.Tensor):
-        raise ValueError(f"{name} must be a torch.Tensor of shape {want}, got {type(x).__name__}")
+        raise ConfigError(f"{name} must be a torch.Tensor of shape {want}, got {type(x).__name__}")
     if x.ndim < len(tail) or tuple(x.shape[x.ndim - len(tail) :]) != tail:
-        raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
+        raise ConfigError(f"{name} must have shape {want}, got {tuple(x.shape)}")
     return x
 
 
@@ -76,7 +78,7 @@ def _check_broadcast(names: tuple[str, ...], *xs: torch.Tensor, tail: int = 0) -
         torch.broadcast_shapes(*(x.shape[: x.ndim - tail] for x in xs))
     except RuntimeError:
         shapes = ", ".join(f"{n} {tuple(x.shape)}" for n, x in zip(names, xs, strict=True))
-        raise ValueError(f"shapes do not broadcast: {shapes}") from None
+        raise ConfigError(f"shapes do not broadcast: {shapes}") from None
 
 
 def check_rotation_matrix(R: torch.Tensor, name: str = "rotation", atol: float = 1e-4) -> torch.Tensor:
@@ -86,7 +88,7 @@ def check_rotation_matrix(R: torch.Tensor, name: str = "rotation", atol: float =
     """
     _check_shape(R, (3, 3), name)
     if not R.is_floating_point():
-        raise ValueError(f"{name} must be a floating point tensor, got {R.dtype}")
+        raise ConfigError(f"{name} must be a floating point tensor, got {R.dtype}")
     if R.numel() == 0:
         return R
     with torch.no_grad():
@@ -95,7 +97,7 @@ def check_rotation_matrix(R: torch.Tensor, name: str = "rotation", atol: float =
         ortho_err = (Rd.transpose(-1, -2) @ Rd - eye).abs().amax()
         det_err = (torch.linalg.det(Rd) - 1).abs().amax()
         if not torch.isfinite(ortho_err) or ortho_err > atol or det_err > atol:
-            raise ValueError(
+            raise ConfigError(
                 f"{name} is not a rotation matrix: max |R^T R - I| = {ortho_err.item():.3g}, "
                 f"max |det R - 1| = {det_err.item():.3g} (tolerance {atol:g}). "
                 "Use image2sphere.so3.project_to_so3 to orthonormalise near-rotations."
@@ -117,7 +119,7 @@ def rotation_about_axis(axis: str, angle: torch.Tensor) -> torch.Tensor:
     """``Rx``, ``Ry`` or ``Rz`` (``axis`` ``"x"``, ``"y"``, ``"z"``) of ``angle (...)`` in radians:
     active right-handed rotations ``(..., 3, 3)`` (module docstring)."""
     if axis not in AXES:
-        raise ValueError(f"axis must be one of {AXES}, got {axis!r}")
+        raise ConfigError(f"axis must be one of {AXES}, got {axis!r}")
     _check_shape(angle, (), "angle")
     return _axis_rotation(angle.cos(), angle.sin(), AXES.index(axis))
 
@@ -185,7 +187,7 @@ def matrix_to_aet_biternions(R: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
 # ---------------------------------------------------------------------------------- quaternions
 def _check_order(order: str) -> str:
     if order not in QUATERNION_ORDERS:
-        raise ValueError(f"order must be 'wxyz' or 'xyzw', got {order!r}")
+        raise ConfigError(f"order must be 'wxyz' or 'xyzw', got {order!r}")
     return order
 
 
@@ -199,10 +201,10 @@ def quaternion_to_matrix(q: torch.Tensor, order: str) -> torch.Tensor:
     _check_order(order)
     _check_shape(q, (4,), "quaternions")
     if not q.is_floating_point():
-        raise ValueError(f"quaternions must be a floating point tensor, got {q.dtype}")
+        raise ConfigError(f"quaternions must be a floating point tensor, got {q.dtype}")
     norm = torch.linalg.vector_norm(q, dim=-1, keepdim=True)
     if (norm < 1e-8).any() or not torch.isfinite(norm).all():
-        raise ValueError("quaternions must be finite and non-zero")
+        raise ConfigError("quaternions must be finite and non-zero")
     q = q / norm
     if order == "wxyz":
         w, x, y, z = q.unbind(-1)
@@ -424,6 +426,6 @@ def random_rotations(
     Normalised Gaussian quaternions are uniform on S^3, hence Haar-distributed rotations.
     """
     if n < 0:
-        raise ValueError(f"n must be >= 0, got {n}")
+        raise ConfigError(f"n must be >= 0, got {n}")
     q = torch.randn(n, 4, generator=generator, dtype=dtype or torch.get_default_dtype(), device=device)
     return quaternion_to_matrix(q, order="wxyz")

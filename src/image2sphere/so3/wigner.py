@@ -18,7 +18,7 @@ import math
 import torch
 from e3nn import o3
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.precision import constant_cache
 from image2sphere.so3.rotations import check_rotation_matrix, matrix_to_angles
 
@@ -62,7 +62,7 @@ def lmax_from_n_so3_coeffs(n: int) -> int:
     while n_so3_coeffs(lmax) < n:
         lmax += 1
     if n_so3_coeffs(lmax) != n:
-        raise ValueError(f"{n} is not a valid number of SO(3) coefficients (455 for lmax 6, 165 for lmax 4)")
+        raise ConfigError(f"{n} is not a valid number of SO(3) coefficients (455 for lmax 6, 165 for lmax 4)")
     return lmax
 
 
@@ -99,7 +99,7 @@ def degree_scale(degrees: torch.Tensor, power, name: str = "degree_power") -> to
     """``(2l+1)^-power`` (float32) for the degree ``l`` of each coefficient in ``degrees`` (e.g.
     ``so3_layout(lmax)[0]``); ``ValueError`` naming ``name`` unless ``power`` is a number >= 0."""
     if isinstance(power, bool) or not isinstance(power, (int, float)) or not power >= 0:
-        raise ValueError(f"{name} must be a number >= 0, got {power!r}")
+        raise ConfigError(f"{name} must be a number >= 0, got {power!r}")
     return ((2 * degrees.to(torch.float64) + 1) ** -float(power)).float()
 
 
@@ -159,7 +159,7 @@ def flat_wigner_on_euler_grid(
     lmax = check_lmax(lmax)
     for name, angles in (("alpha", alpha), ("beta", beta), ("gamma", gamma)):
         if angles.ndim != 1:
-            raise ValueError(f"{name} must have shape (n,), got {tuple(angles.shape)}")
+            raise ConfigError(f"{name} must have shape (n,), got {tuple(angles.shape)}")
     dtype = torch.promote_types(alpha.dtype, torch.float32) if dtype is None else dtype
     alpha, beta, gamma = (a.to(torch.float64) for a in (alpha, beta, gamma))
     zero = torch.zeros((), dtype=torch.float64, device=alpha.device)
@@ -188,7 +188,7 @@ def flat_wigner(lmax: int, rotations: torch.Tensor) -> torch.Tensor:
 def _wigner_blocks(lmax: int, rotation: torch.Tensor) -> list[torch.Tensor]:
     check_rotation_matrix(rotation)
     if rotation.shape != (3, 3):
-        raise ValueError(f"rotation must have shape (3, 3), got {tuple(rotation.shape)}")
+        raise ConfigError(f"rotation must have shape (3, 3), got {tuple(rotation.shape)}")
     angles = matrix_to_angles(rotation)
     return [wigner_D(l, *angles) for l in range(check_lmax(lmax) + 1)]
 
@@ -196,7 +196,7 @@ def _wigner_blocks(lmax: int, rotation: torch.Tensor) -> list[torch.Tensor]:
 def rotate_s2_coeffs(x: torch.Tensor, rotation: torch.Tensor, lmax: int) -> torch.Tensor:
     """Coefficients ``(..., (lmax+1)^2)`` of the rotated S2 signal ``x(R^-1 u)``: ``x^l -> D^l(R) x^l``."""
     if x.shape[-1] != n_s2_coeffs(lmax):
-        raise ValueError(f"S2 coefficients must end in {n_s2_coeffs(lmax)} for lmax={lmax}, got {tuple(x.shape)}")
+        raise ConfigError(f"S2 coefficients must end in {n_s2_coeffs(lmax)} for lmax={lmax}, got {tuple(x.shape)}")
     blocks = _wigner_blocks(lmax, rotation.to(x.dtype))
     out = [x[..., l * l : (l + 1) ** 2] @ D.T for l, D in enumerate(blocks)]  # D x per l  [..., 2l+1]
     return torch.cat(out, dim=-1)
@@ -205,7 +205,7 @@ def rotate_s2_coeffs(x: torch.Tensor, rotation: torch.Tensor, lmax: int) -> torc
 def left_translate_so3_coeffs(c: torch.Tensor, rotation: torch.Tensor, lmax: int) -> torch.Tensor:
     """Coefficients ``(..., n_so3_coeffs)`` of the left-translated signal ``f(R^-1 g)``: ``c^l -> D^l(R) c^l``."""
     if c.shape[-1] != n_so3_coeffs(lmax):
-        raise ValueError(f"SO(3) coefficients must end in {n_so3_coeffs(lmax)} for lmax={lmax}, got {tuple(c.shape)}")
+        raise ConfigError(f"SO(3) coefficients must end in {n_so3_coeffs(lmax)} for lmax={lmax}, got {tuple(c.shape)}")
     Ds = _wigner_blocks(lmax, rotation.to(c.dtype))
     out = []
     for (l, block), D in zip(so3_blocks(lmax), Ds, strict=True):

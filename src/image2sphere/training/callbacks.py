@@ -15,6 +15,7 @@ import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager
 from pathlib import Path
+from typing import Any
 
 import lightning.pytorch as pl
 import torch
@@ -22,9 +23,10 @@ from lightning.fabric.utilities.apply_func import move_data_to_device
 from torch.optim.swa_utils import update_bn
 from torch.utils.data import DataLoader
 
+from image2sphere.checks import ConfigError
 from image2sphere.data.loading import EpochShuffleSampler
 
-__all__ = ["BatchNormStatistics", "SO3PlotCallback", "recompute_batchnorm_statistics"]
+__all__ = ["BatchNormStatistics", "NoteLoopStart", "SO3PlotCallback", "recompute_batchnorm_statistics"]
 
 log = logging.getLogger(__name__)
 
@@ -32,6 +34,19 @@ log = logging.getLogger(__name__)
 #: :class:`BatchNormStatistics` and of ``src.eval``'s ``batchnorm_batches`` for a checkpoint whose run did not
 #: name one (a run's config states its own: ``callbacks.batchnorm_statistics.num_batches``)
 BATCHNORM_BATCHES = 50
+
+
+class NoteLoopStart(pl.Callback):
+    """Tells the entry point (:func:`image2sphere.training.entry.note_loop_start`) when a loop of the trainer
+    starts (sanity check, training, validation, test, prediction): from then on the job's work has begun and
+    its run directory is kept whatever ends it. Every trainer of ``src.train`` and ``src.eval`` has it."""
+
+    def _started(self, *args: Any) -> None:
+        from image2sphere.training.entry import note_loop_start
+
+        note_loop_start()
+
+    on_sanity_check_start = on_train_start = on_validation_start = on_test_start = on_predict_start = _started
 
 
 class SO3PlotCallback(pl.Callback):
@@ -52,7 +67,7 @@ class SO3PlotCallback(pl.Callback):
 
     def __init__(self, every_n_epochs: int = 5, n_images: int = 4, level: int = 4, threshold: float | None = None):
         if every_n_epochs < 1 or n_images < 0:
-            raise ValueError(
+            raise ConfigError(
                 f"callbacks.so3_plot: every_n_epochs must be >= 1 and n_images >= 0, got {every_n_epochs}, {n_images}"
             )
         self.every_n_epochs = int(every_n_epochs)
@@ -120,7 +135,9 @@ class BatchNormStatistics(pl.Callback):
 
     def __init__(self, num_batches: int = BATCHNORM_BATCHES):
         if isinstance(num_batches, bool) or not isinstance(num_batches, int) or num_batches < 1:
-            raise ValueError(f"callbacks.batchnorm_statistics.num_batches must be an integer >= 1, got {num_batches!r}")
+            raise ConfigError(
+                f"callbacks.batchnorm_statistics.num_batches must be an integer >= 1, got {num_batches!r}"
+            )
         self.num_batches = num_batches
         self._done_at: int | None = None  # the global step whose weights the statistics describe
         self._warned = False

@@ -53,6 +53,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 from omegaconf import OmegaConf
 
+from image2sphere.checks import ConfigError, InputNotFoundError
 from image2sphere.loop_progress import batches_done_in_epoch, epoch_resumed_in
 from image2sphere.recalibration import Recalibration
 
@@ -166,7 +167,7 @@ class EpochCheckpoint(ModelCheckpoint):
 
 
 # ---------------------------------------------------------------------------------------------- reading
-class CheckpointError(ValueError):
+class CheckpointError(ConfigError):
     """A checkpoint file that is missing, unreadable, not from this project, or does not fit its model."""
 
 
@@ -179,19 +180,19 @@ def checkpoint_file(path: str | Path, key: str = "ckpt_path") -> Path:
     if file.is_file():
         return file
     if not file.is_dir():
-        raise FileNotFoundError(
+        raise InputNotFoundError(
             f"{key}={path} does not exist; pass the checkpoint of an earlier run, "
             f"e.g. {key}=logs/train/runs/<run>/checkpoints/last.ckpt"
         )
     found = checkpoints_in(file)
     if not found:
-        raise FileNotFoundError(
+        raise InputNotFoundError(
             f"{key}={path} is a directory and holds no checkpoint (*.ckpt in it, in its checkpoints/ or in "
             f"<run>/checkpoints/ below it); pass a checkpoint file, "
             f"e.g. {key}=logs/train/runs/<run>/checkpoints/last.ckpt"
         )
     also = f" (also there: {', '.join(f.relative_to(file).as_posix() for f in found[1:3])})" if len(found) > 1 else ""
-    raise FileNotFoundError(f"{key}={path} is a directory; pass a checkpoint file, e.g. {key}={found[0]}{also}")
+    raise InputNotFoundError(f"{key}={path} is a directory; pass a checkpoint file, e.g. {key}={found[0]}{also}")
 
 
 def checkpoints_in(folder: Path) -> list[Path]:

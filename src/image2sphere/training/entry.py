@@ -3,24 +3,24 @@
 Each main runs its task inside :func:`entry_point`:
 
 * **A refused value prints one line.** A config value, a path or a dataset that the project's own code
-  refuses (:func:`refusal`: ``ValueError``, ``FileNotFoundError`` or ``FileExistsError`` raised by
-  ``image2sphere`` or the entry point before any training or test loop ran, including one raised while
-  Hydra instantiates a dataset; or a required key such as ``ckpt_path=???`` left out) prints
+  refuses (:func:`refusal`: a :class:`~image2sphere.checks.Refusal`, also one raised while Hydra
+  instantiates a dataset; or a required key such as ``ckpt_path=???`` left out) prints
   ``Error: <message>`` on stderr, and the process exits with status 1. Any other exception (a bug, an
-  error inside a training step, an error of torch or Lightning) keeps Hydra's usual report with its
-  traceback. With ``HYDRA_FULL_ERROR=1`` in the environment every exception is re-raised as it is,
-  and Hydra prints the full traceback.
+  error of torch or Lightning) keeps Hydra's usual report with its traceback. With
+  ``HYDRA_FULL_ERROR=1`` in the environment every exception is re-raised as it is, and Hydra prints the
+  full traceback.
 * **In a multirun** (``-m``) a refused job does not stop the sweep: its line is logged, the job fails
   as a Hydra job fails (the launcher goes on with the other jobs) and Hydra reports it after the
   batch, with the job's overrides, in two lines (:class:`RefusedStart` is a compact Hydra error).
-* **A start that fails before training leaves no run directory.** Hydra creates the job's directory
-  and writes ``.hydra/`` and the log before the task starts; when the task fails before anything else
-  was written there (:func:`discard_failed_start`), those files and the directory are removed, so
-  that ``src.tables`` does not list the attempt as an unfinished run. Nothing is removed when the
-  directory holds anything else (a checkpoint, a logger's files, ``metrics.json``), when a training or
-  test loop had started, on the other ranks of a distributed run, in a requeued SLURM job, or when the
-  directory existed before this process (an explicit ``hydra.run.dir`` that was empty: its files are
-  removed and the empty directory is left as it was).
+* **A refused start leaves no run directory.** Hydra creates the job's directory and writes ``.hydra/``
+  and the log before the task starts; when the task is refused before anything else was written there
+  (:func:`discard_failed_start`), those files and the directory are removed, so that ``src.tables``
+  does not list the attempt as an unfinished run. Nothing is removed for any other exception (a bug
+  keeps its run directory and log for its report), when the directory holds anything else (a
+  checkpoint, a logger's files, ``metrics.json``), once a trainer's loop had started
+  (:class:`~image2sphere.training.callbacks.NoteLoopStart`), on the other ranks of a distributed run, in
+  a requeued SLURM job, or when the directory existed before this process (an explicit ``hydra.run.dir``
+  that was empty: its files are removed and the empty directory is left as it was).
 
 Whether a single run's directory is this process's own is noted by :class:`NoteNewRunDirectory`, a
 Hydra callback (``conf/hydra/default.yaml``) called before Hydra creates it. A job of a multirun always
@@ -44,18 +44,20 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue
 
+from image2sphere.checks import Refusal
 from image2sphere.training.cluster import is_secondary_rank, is_slurm_requeue
 
-__all__ = ["NoteNewRunDirectory", "RefusedStart", "discard_failed_start", "entry_point", "refusal"]
+__all__ = [
+    "NoteNewRunDirectory",
+    "RefusedStart",
+    "discard_failed_start",
+    "entry_point",
+    "loop_started",
+    "note_loop_start",
+    "refusal",
+]
 
 log = logging.getLogger(__name__)
-
-# the exceptions by which the project's code refuses a value, a path or a dataset (each names the key)
-USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError)
-# modules whose code raises refusals: the package and the entry points (src.train, ...; __main__ when run)
-_OUR_MODULES = ("image2sphere", "src", "__main__", "hydra_plugins.image2sphere_sweeper")
-# inside these, a training, validation or test loop was running: an error there is no refused start
-_LOOP_MODULES = ("lightning.pytorch.loops", "pytorch_lightning.loops")
 # what Hydra writes into a job's directory before the task starts (besides the log)
 HYDRA_FILES = ("config.yaml", "hydra.yaml", "overrides.yaml")
 # written by src.train before its data is read, in a run that resumes a checkpoint
@@ -93,58 +95,36 @@ def _full_error_requested() -> bool:
     return os.environ.get("HYDRA_FULL_ERROR") == "1"  # what Hydra itself checks
 
 
-def _modules(exc: BaseException) -> list[str]:
-    """The module (``__name__``) of each frame of ``exc``'s own traceback, outermost first."""
-    out, tb = [], exc.__traceback__
-    while tb is not None:
-        out.append(str(tb.tb_frame.f_globals.get("__name__", "")))
-        tb = tb.tb_next
-    return out
+# whether a trainer of this process has started a loop (sanity check, training, validation, test,
+# prediction) since the entry point's task began: set by NoteLoopStart, read by discard_failed_start
+_LOOP: dict[str, bool] = {"started": False}
 
 
-def _chain(exc: BaseException) -> Iterator[BaseException]:
-    """``exc`` and every exception it was raised from or while handling."""
-    seen: set[int] = set()
-    todo = [exc]
-    while todo:
-        e = todo.pop()
-        if id(e) not in seen:
-            seen.add(id(e))
-            yield e
-            todo += [c for c in (e.__cause__, e.__context__) if c is not None]
+def note_loop_start() -> None:
+    """Record that a trainer's loop has started: the job's work began, its directory is kept whatever happens
+    next (:class:`~image2sphere.training.callbacks.NoteLoopStart` calls this)."""
+    _LOOP["started"] = True
 
 
-def _in(module: str, prefixes: tuple[str, ...]) -> bool:
-    return any(module == p or module.startswith(p + ".") for p in prefixes)
-
-
-def loops_started(exc: BaseException) -> bool:
-    """Whether ``exc`` (or an exception it comes from) was raised inside a Lightning training, validation
-    or test loop: the job had started its work."""
-    return any(_in(module, _LOOP_MODULES) for e in _chain(exc) for module in _modules(e))
+def loop_started() -> bool:
+    """Whether a trainer's loop has started in this entry point's task."""
+    return _LOOP["started"]
 
 
 def refusal(exc: BaseException) -> str | None:
-    """The one-line message of ``exc`` if it is a refusal of the user's input, else ``None`` (it keeps its
-    traceback).
+    """The one-line message of ``exc`` if it refuses the user's input, else ``None`` (it keeps its traceback).
 
-    A refusal is a ``ValueError``, ``FileNotFoundError`` or ``FileExistsError`` (or a subclass: a
-    checkpoint or dataset error) raised by the project's own code (the innermost frame is the package's or
-    an entry point's), not inside a training or test loop (where a ``ValueError`` is more likely a bug than
-    a setting); the same exception raised while Hydra instantiated a config node (a data module that finds
-    no dataset); or a required config value (``???``) that was not given.
+    A refusal is a :class:`~image2sphere.checks.Refusal` (a config value, a missing input, an output that
+    would be overwritten; the project's code raises nothing else for a user's input), also when it was
+    raised while Hydra instantiated a config node (a data module that finds no dataset), or a required
+    config value (``???``) that was not given.
     """
-    if loops_started(exc):
-        return None
     if isinstance(exc, InstantiationException) and exc.__cause__ is not None:
         exc = exc.__cause__
     if isinstance(exc, MissingMandatoryValue):
         key = getattr(exc, "full_key", None) or "a required key"
         return f"{key} is required: give it on the command line ({key}=...)"
-    modules = _modules(exc)
-    if not isinstance(exc, USER_ERRORS) or not modules or not _in(modules[-1], _OUR_MODULES):
-        return None
-    return str(exc)
+    return str(exc) if isinstance(exc, Refusal) else None
 
 
 def _job_log_handlers(directory: Path) -> list[tuple[logging.Logger, logging.FileHandler]]:
@@ -161,15 +141,18 @@ def _job_log_handlers(directory: Path) -> list[tuple[logging.Logger, logging.Fil
 
 
 def discard_failed_start(exc: BaseException) -> bool:
-    """Remove the directory of this Hydra job when its task failed with ``exc`` before writing anything.
+    """Remove the directory of this Hydra job when its task was refused (:func:`refusal`) before writing
+    anything.
 
     Removed: Hydra's ``.hydra/{config,hydra,overrides}.yaml``, the job's log (the file handlers that write
     into the directory) and ``resumed_config.yaml``, then the directory itself when it is empty and this
     process made it (a single run noted by :class:`NoteNewRunDirectory`, or a job of a multirun). Nothing
-    is removed when the directory holds any other file or folder, when a loop had started
-    (:func:`loops_started`), on a secondary rank or in a requeued SLURM job. Returns whether the
-    directory is gone."""
-    if not HydraConfig.initialized() or is_secondary_rank() or loops_started(exc):
+    is removed for an exception that is no refusal, when the directory holds any other file or folder,
+    once a loop had started (:func:`loop_started`), on a secondary rank or in a requeued SLURM job.
+    Returns whether the directory is gone."""
+    if refusal(exc) is None or loop_started():
+        return False
+    if not HydraConfig.initialized() or is_secondary_rank():
         return False
     hc = HydraConfig.get()
     directory = Path(os.path.abspath(str(hc.runtime.output_dir)))
@@ -229,6 +212,7 @@ def entry_point() -> Iterator[None]:
     multirun), and a start that failed before writing anything leaves no directory (see the module docstring).
     Lightning's messages keep their own console line (:func:`lightning_logs_on_their_own`)."""
     lightning_logs_on_their_own()
+    _LOOP["started"] = False  # a new task (a job of a multirun runs in the same process as the one before)
     try:
         yield
     except Exception as exc:

@@ -26,8 +26,10 @@ from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from image2sphere.checks import ConfigError, OutputExistsError
 from image2sphere.config_text import override_key
 from image2sphere.reporting.metrics_table import format_metrics_markdown, format_metrics_table
+from image2sphere.training.callbacks import NoteLoopStart
 from image2sphere.training.checkpoint import (
     AtomicCheckpointIO,
     CheckpointError,
@@ -83,7 +85,7 @@ def _dataset_at_model_size(dataset: DictConfig, ckpt: dict, ckpt_path: str) -> D
         return dataset
     command = command_line()
     if command is not None and "dataset.image_size" in map(override_key, command[1]):
-        raise ValueError(
+        raise ConfigError(
             f"dataset.image_size={dataset.image_size}, but the network in {ckpt_path} "
             f"takes {size} px images: leave dataset.image_size out (it follows the checkpoint) or set it to {size}"
         )
@@ -135,11 +137,11 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     check_eval_config(cfg)
     output_dir = Path(cfg.paths.output_dir)
     if (output_dir / "metrics.json").exists():
-        raise FileExistsError(f"{output_dir / 'metrics.json'} already exists: choose another hydra.run.dir")
+        raise OutputExistsError(f"{output_dir / 'metrics.json'} already exists: choose another hydra.run.dir")
     recalibration = cfg.get("recalibration", "auto")
     target = recalibrated_path(cfg.ckpt_path)
     if recalibration == "fit" and target.exists():
-        raise FileExistsError(
+        raise OutputExistsError(
             f"{target} already exists (a recalibration fitted earlier): evaluate it with ckpt_path={target}, "
             "or move it away to fit again"
         )
@@ -156,18 +158,19 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
     datamodule = _datamodule(cfg, ckpt)
     if cfg.get("batch_size") is not None:
         if int(cfg.batch_size) < 1:
-            raise ValueError(f"batch_size must be >= 1, got {cfg.batch_size}")
+            raise ConfigError(f"batch_size must be >= 1, got {cfg.batch_size}")
         datamodule.batch_size = int(cfg.batch_size)
     names = list(getattr(datamodule, "class_names", []) or [])
     trained = module.class_names or []
     if getattr(module.net, "num_classes", 0) and names != trained[: len(names)]:
-        raise ValueError(
+        raise ConfigError(
             f"the model takes the class as input and was trained with classes {trained}; the dataset has {names}"
         )
     module.class_names = names or trained
     loggers = instantiate_list(cfg.get("logger"), "logger")
     # the training run's progress bar: it shows how far a long test batch's grid sweep is
-    trainer: pl.Trainer = instantiate(cfg.trainer, logger=loggers or False, callbacks=[EpochProgressBar()],
+    callbacks = [EpochProgressBar(), NoteLoopStart()]
+    trainer: pl.Trainer = instantiate(cfg.trainer, logger=loggers or False, callbacks=callbacks,
                                       enable_checkpointing=False)  # fmt: skip
     if cfg.get("batchnorm_statistics", "stored") == "recompute":
         _recompute_batchnorm_statistics(module, datamodule, ckpt, cfg.get("batchnorm_batches"), trainer)
@@ -262,7 +265,7 @@ def _fit_and_store_recalibration(
     datamodule.setup("fit")
     loader = datamodule.val_dataloader()
     if not loader:
-        raise ValueError(
+        raise ConfigError(
             "recalibration=fit needs a validation split, and this dataset has none: hold out validation images "
             "(dataset.val_per_shape for SYMSOL, dataset.val_instances_per_class for ModelNet10-SO(3), "
             "dataset.val_per_class for PASCAL3D+) or evaluate with recalibration=auto or off"

@@ -41,6 +41,7 @@ import torch
 from lightning.pytorch.utilities.warnings import PossibleUserWarning
 from torch import nn
 
+from image2sphere.checks import ConfigError
 from image2sphere.data.common import stable_seed
 from image2sphere.data.loading import PADDING
 from image2sphere.distributions.base import LOG_UNIFORM_DENSITY
@@ -115,7 +116,7 @@ class PoseEstimationModule(pl.LightningModule):
         super().__init__()
         methods = method_of(net)  # ValueError for a network that is not a pose network
         if scheduler_interval not in ("epoch", "step"):
-            raise ValueError(f"model.scheduler_interval must be 'epoch' or 'step', got {scheduler_interval!r}")
+            raise ConfigError(f"model.scheduler_interval must be 'epoch' or 'step', got {scheduler_interval!r}")
         check_grid_levels(
             train_grid_level=train_grid_level,
             val_grid_level=val_grid_level,

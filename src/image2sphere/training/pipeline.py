@@ -21,7 +21,9 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from image2sphere.checks import ConfigError, OutputExistsError
 from image2sphere.reporting.metrics_table import format_metrics_table
+from image2sphere.training.callbacks import NoteLoopStart
 from image2sphere.training.checkpoint import AtomicCheckpointIO, check_resumed_weights, checkpoint_file, load_checkpoint
 from image2sphere.training.cluster import (
     ddp_children_run_this_job,
@@ -59,7 +61,7 @@ def instantiate_list(group: DictConfig | None, what: str) -> list:
     if not group:
         return out
     if not isinstance(group, DictConfig):
-        raise ValueError(f"{what} config must be a mapping of name -> {{_target_: ...}}")
+        raise ConfigError(f"{what} config must be a mapping of name -> {{_target_: ...}}")
     for name, conf in group.items():
         if isinstance(conf, DictConfig) and "_target_" in conf:
             log.info("Instantiating %s %s <%s>", what, name, conf._target_)
@@ -107,7 +109,7 @@ def _train(cfg: DictConfig) -> dict[str, float]:
         if secondary or (requeued and existing.name == "checkpoints"):
             continue
         if existing.exists() and (existing.is_file() or any(existing.iterdir())):
-            raise FileExistsError(
+            raise OutputExistsError(
                 f"{existing} already exists: another run used {output_dir}. Runs never share a directory; "
                 "choose another hydra.run.dir (or leave it at its default, which is unique per run)"
             )
@@ -133,6 +135,7 @@ def _train(cfg: DictConfig) -> dict[str, float]:
     loggers = [] if cfg.trainer.get("fast_dev_run") else instantiate_list(cfg.get("logger"), "logger")
     if not loggers:  # the learning-rate monitor needs a logger to write to
         callbacks = [c for c in callbacks if not isinstance(c, pl.callbacks.LearningRateMonitor)]
+    callbacks.append(NoteLoopStart())  # once a loop started, the run directory is kept whatever ends the run
     trainer: pl.Trainer = instantiate(_trainer_config(cfg.trainer), callbacks=callbacks, logger=loggers or False)
     use_flag_only_signals(trainer)
     for logger in loggers:

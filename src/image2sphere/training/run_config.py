@@ -37,7 +37,7 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
-from image2sphere.checks import check_int
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.config_text import override_key
 from image2sphere.data.workers import check_num_workers
 from image2sphere.so3.grid import check_grid_levels
@@ -116,7 +116,7 @@ def check_choice(cfg: DictConfig, key: str, choices: tuple[str, ...], default: s
     ``choices``, else ``ValueError`` naming the key and the choices."""
     value = cfg.get(key, default)
     if value not in choices:
-        raise ValueError(f"{key} must be one of {', '.join(choices)}, got {value!r}")
+        raise ConfigError(f"{key} must be one of {', '.join(choices)}, got {value!r}")
     return value
 
 
@@ -126,10 +126,10 @@ def check_train_config(cfg: DictConfig) -> None:
     _apply_renamed_keys(cfg, "train")
     seed = cfg.get("seed")
     if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
-        raise ValueError(f"seed must be an integer or null, got {seed!r}")
+        raise ConfigError(f"seed must be an integer or null, got {seed!r}")
     for key in ("train", "test"):
         if not isinstance(cfg.get(key), bool):
-            raise ValueError(f"{key} must be true or false, got {cfg.get(key)!r}")
+            raise ConfigError(f"{key} must be true or false, got {cfg.get(key)!r}")
     check_choice(cfg, "recalibration", ("fit", "off"), default="fit")
     _int_at_least(cfg, "lmax", 0)
     _check_levels(
@@ -142,7 +142,7 @@ def check_train_config(cfg: DictConfig) -> None:
     check_num_workers(OmegaConf.select(cfg, "dataset.num_workers", default=0))  # an integer >= 0 or auto
     net_size, data_size = OmegaConf.select(cfg, "model.net.image_size"), OmegaConf.select(cfg, "dataset.image_size")
     if net_size is not None and data_size is not None and net_size != data_size:
-        raise ValueError(
+        raise ConfigError(
             f"model.net.image_size={net_size} but dataset.image_size={data_size}: the network takes images of the "
             "size it was built for; set both to the same value"
         )
@@ -150,7 +150,7 @@ def check_train_config(cfg: DictConfig) -> None:
     max_epochs = OmegaConf.select(cfg, "trainer.max_epochs")
     valid_epochs = type(max_epochs) is int and (max_epochs >= 1 or max_epochs == -1)  # bool is not a count
     if max_epochs is not None and not valid_epochs:
-        raise ValueError(f"trainer.max_epochs must be an integer >= 1 (or -1: no limit), got {max_epochs!r}")
+        raise ConfigError(f"trainer.max_epochs must be an integer >= 1 (or -1: no limit), got {max_epochs!r}")
 
 
 # Lightning's mixed-precision plugins ("16" and "bf16" are the older names)
@@ -164,7 +164,7 @@ def _check_fused_clipping(cfg: DictConfig) -> None:
     precision = str(OmegaConf.select(cfg, "trainer.precision", default="32-true"))
     fused = OmegaConf.select(cfg, "model.optimizer.fused", default=False)
     if fused is True and clip and precision in MIXED_PRECISION:
-        raise ValueError(
+        raise ConfigError(
             f"model.optimizer.fused=true cannot clip gradients under trainer.precision={precision} "
             f"(trainer.gradient_clip_val={clip}): a fused optimiser unscales the gradients inside its step, after "
             "the clipping; set model.optimizer.fused=false to clip, or drop trainer.gradient_clip_val"
@@ -176,14 +176,14 @@ def check_eval_config(cfg: DictConfig) -> None:
     keys given under their old names are moved to the new ones (:data:`RENAMED_KEYS`)."""
     _apply_renamed_keys(cfg, "eval")
     if cfg.get("ckpt_path") is None:
-        raise ValueError(
+        raise ConfigError(
             "ckpt_path is required: python -m src.eval ckpt_path=logs/train/runs/<run>/checkpoints/last.ckpt"
         )
     _check_levels(cfg, ["eval_grid_level"])
     _int_at_least(cfg, "batch_size", 1, allow_null=True)
     _int_at_least(cfg, "plots", 0)
     if not isinstance(cfg.get("refine"), bool):
-        raise ValueError(f"refine must be true or false, got {cfg.get('refine')!r}")
+        raise ConfigError(f"refine must be true or false, got {cfg.get('refine')!r}")
     check_choice(cfg, "recalibration", ("auto", "fit", "off"), default="auto")
     check_choice(cfg, "batchnorm_statistics", ("stored", "recompute"), default="stored")
     _int_at_least(cfg, "batchnorm_batches", 1, allow_null=True)
@@ -308,7 +308,7 @@ def check_same_model(stored: dict, current: dict, overrides: list[str], explicit
     known = stored_model_choice(ckpt_path)
     if given is not None and known is not None:
         if given != known:
-            raise ValueError(
+            raise ConfigError(
                 f"ckpt_path={ckpt_path} holds a model={known} run; model={given} cannot continue it: "
                 f"drop model={given} {fix}"
             )
@@ -321,7 +321,7 @@ def check_same_model(stored: dict, current: dict, overrides: list[str], explicit
         if before != after:
             held = f"a model={known} run" if known else f"a run of {before} (model.{key})"
             change = f"model={given}" if given is not None else "the overrides that change the model"
-            raise ValueError(
+            raise ConfigError(
                 f"ckpt_path={ckpt_path} holds {held}; {change} ({after}) cannot continue it: drop {change} {fix}"
             )
 

@@ -83,6 +83,7 @@ import torch
 from lightning.fabric.plugins.environments import SLURMEnvironment
 from lightning.pytorch.trainer.connectors.signal_connector import _SignalConnector
 
+from image2sphere.checks import ConfigError
 from image2sphere.training.cluster import is_secondary_rank, slurm_job_id
 
 __all__ = [
@@ -175,7 +176,7 @@ def requeue_signals() -> set[int]:
 
 def _check_grace(grace: float) -> float:
     if isinstance(grace, bool) or not isinstance(grace, int | float) or not grace > 0:
-        raise ValueError(f"stop_grace_s must be a number of seconds > 0, got {grace!r}")
+        raise ConfigError(f"stop_grace_s must be a number of seconds > 0, got {grace!r}")
     return float(grace)
 
 
@@ -516,7 +517,7 @@ def decide(trainer: Any = None, read: str = "all", where: str = "a decision poin
     On one process the answer is this process's own request (``None`` for ``"none"``). ``trainer``: where
     the group's timeout is set (its DDP strategy's ``timeout``); ``where``: the point's name in errors."""
     if read not in _READ:
-        raise ValueError(f"read must be one of {', '.join(_READ)}, got {read!r}")
+        raise ConfigError(f"read must be one of {', '.join(_READ)}, got {read!r}")
     code = _REQUEST.code()
     if not _distributed():
         return None if read == "none" or not code else code % 256

@@ -57,6 +57,19 @@ def test_hydra_full_error_shows_the_traceback(tmp_path):
     assert not any((tmp_path / "train" / "runs").iterdir())  # the directory is removed all the same
 
 
+def test_a_bug_before_the_training_loop_keeps_its_traceback_and_its_run_directory(tmp_path):
+    """Quick. A callback whose construction fails with a ``TypeError`` (a bug, not a refusal), as
+    ``python -m src.train`` builds the trainer before any loop: Hydra's report with the traceback, exit status 1,
+    and the run directory with its config and log left for the report (it used to be removed)."""
+    run = tmp_path / "run"
+    args = ["+callbacks.broken._target_=builtins.int", "+callbacks.broken.not_a_keyword=1", "logger=none",
+            f"hydra.run.dir={run}"]  # fmt: skip
+    proc = run_train(args, tmp_path / "data", tmp_path / "logs", check=False)
+    assert proc.returncode == 1, proc.stderr
+    assert "Error: " not in proc.stderr and "not_a_keyword" in proc.stderr, proc.stderr  # no refusal line
+    assert (run / ".hydra" / "config.yaml").is_file() and (run / "train.log").is_file()
+
+
 def test_a_refused_start_in_an_empty_directory_that_existed_leaves_it_as_it_was(tmp_path):
     run_dir = tmp_path / "mine"
     run_dir.mkdir()

@@ -10,7 +10,7 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import torch
@@ -83,7 +83,7 @@ def requeue_checkpoint(output_dir: Path) -> str | None:
 
 
 @contextlib.contextmanager
-def ddp_children_run_this_job() -> Iterator[None]:
+def ddp_children_run_this_job(before_group_ends: Callable[[], None] | None = None) -> Iterator[None]:
     """Inside a job of a Hydra multirun: the processes Lightning starts for the other local ranks of
     ``trainer=ddp`` run this job, in this job's directory, instead of the whole sweep again.
 
@@ -92,6 +92,10 @@ def ddp_children_run_this_job() -> Iterator[None]:
     and every value) and ``run.dir`` is not the job's directory. For the duration of the block the
     command line is this job's own overrides as a single run (``hydra.mode=RUN``) and ``run.dir`` the
     job's output directory. Outside a multirun it does nothing.
+
+    When the block ends, the job's process group is destroyed (the next job starts its own), after
+    ``before_group_ends`` (the entry points pass :func:`~image2sphere.training.stop.close_decisions`, which
+    ends the stop decisions' thread on that group).
     """
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
@@ -114,9 +118,8 @@ def ddp_children_run_this_job() -> Iterator[None]:
         # the next job of the sweep starts its own ranks: this job's process group (its other ranks have
         # exited) and the variables Lightning's launcher set for it must not carry over
         if torch.distributed.is_available() and torch.distributed.is_initialized():
-            from image2sphere.training.stop import close_decisions  # (stop imports this module)
-
-            close_decisions()
+            if before_group_ends is not None:
+                before_group_ends()
             torch.distributed.destroy_process_group()
         for name, value in environment.items():
             if value is None:

@@ -183,7 +183,7 @@ def evaluate(cfg: DictConfig) -> dict[str, float]:
         log.info("Recalibration stored in %s: %s", cfg.ckpt_path, module.recalibration.describe())
     start = time.perf_counter()
     # in a multirun job, the other DDP ranks start as this job
-    with ddp_children_run_this_job(), handle_signals(grace=cfg.get("stop_grace_s", DEFAULT_GRACE_S)):
+    with ddp_children_run_this_job(close_decisions), handle_signals(grace=cfg.get("stop_grace_s", DEFAULT_GRACE_S)):
         try:
             trainer.test(model=module, datamodule=datamodule, verbose=False)  # the project's table is printed below
             close_decisions()  # every rank: no decision is left in flight when the process ends

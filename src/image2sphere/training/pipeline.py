@@ -77,7 +77,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
     together where to stop (:mod:`image2sphere.training.stop`).
     """
     quiet_known_noise()
-    with ddp_children_run_this_job(), handle_signals(requeue_signals(), cfg.get("stop_grace_s", DEFAULT_GRACE_S)):
+    grace = cfg.get("stop_grace_s", DEFAULT_GRACE_S)
+    with ddp_children_run_this_job(close_decisions), handle_signals(requeue_signals(), grace):
         metrics = _train(cfg)
         close_decisions()  # every rank, at its run's end: no decision is left in flight when the process ends
         return metrics

@@ -78,6 +78,7 @@ RESOLVES_TO = {
     "modelnet10": ("modelnet10", 50, "SGD", 0.001, 40, 15, 0.1, 224, 64),
     "modelnet10_limited": ("modelnet10_limited", 50, "SGD", 0.001, 40, 15, 0.1, 224, 64),
     "pascal3d": ("pascal3d", 101, "SGD", 0.001, 40, 15, 0.1, 224, 64),
+    "folder": ("folder", 50, "SGD", 0.001, 40, 15, 0.1, 224, 64),
 }
 PROTOCOL_KEYS = ("encoder", "model.optimizer", "trainer.max_epochs", "model.scheduler")
 

@@ -863,7 +863,7 @@ def check_preemption(argv, proc, args: list[str], ws: Workspace) -> None:
 def check_fixtures(argv, proc, args: list[str], ws: Workspace) -> None:
     assert proc.returncode == 0, describe(argv, proc)
     root = ws.root / args[-1]
-    names = {"symsol", "ModelNet10-SO3", "PASCAL3D+_release1.1", "syn_images_cropped_bkg_overlaid"}
+    names = {"symsol", "ModelNet10-SO3", "PASCAL3D+_release1.1", "syn_images_cropped_bkg_overlaid", "my_poses"}
     assert {p.name for p in root.iterdir()} == names, describe(argv, proc)
 
 

@@ -35,6 +35,7 @@ __all__ = [
     "SHAPES",
     "CorruptImageError",
     "DatasetNotFoundError",
+    "FolderDataModule",
     "ModelNet10DataModule",
     "ModelNet10Dataset",
     "Pascal3DDataModule",
@@ -60,6 +61,7 @@ __all__ = [
 # to unpickle its Dataset, does not import Lightning
 _LAZY = {
     "render_symsol": "image2sphere.data.render",
+    "FolderDataModule": "image2sphere.data.datamodule",
     "ModelNet10DataModule": "image2sphere.data.datamodule",
     "Pascal3DDataModule": "image2sphere.data.datamodule",
     "SymsolDataModule": "image2sphere.data.datamodule",

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from image2sphere.checks import ConfigError, check_int, check_number
+from image2sphere.checks import ConfigError, InputNotFoundError, check_int, check_number
 from image2sphere.data.common import check_corrupt_policy, missing_dataset_error, stable_seed
 from image2sphere.data.loading import EpochShuffleSampler, PaddedDataset, ShardSampler, collate_skipping_corrupt
 from image2sphere.data.modelnet import ModelNet10Dataset, check_lmdb_not_empty
@@ -62,7 +62,7 @@ from image2sphere.data.workers import (
     worker_context,
 )
 
-__all__ = ["ModelNet10DataModule", "Pascal3DDataModule", "PoseDataModule", "SymsolDataModule"]
+__all__ = ["FolderDataModule", "ModelNet10DataModule", "Pascal3DDataModule", "PoseDataModule", "SymsolDataModule"]
 
 log = logging.getLogger(__name__)
 
@@ -581,3 +581,130 @@ class Pascal3DDataModule(PoseDataModule):
                 self.data_val = Pascal3DDataset(val, return_all=True, **common)
         if stage in (None, "test") and self.data_test is None:
             self.data_test = Pascal3DDataset(self._objects("test"), return_all=True, **common)
+
+
+class FolderDataModule(PoseDataModule):
+    """A user's own images and rotations (``dataset=folder``): a folder of images and one labels file
+    (:mod:`~image2sphere.data.folder`; docs/datasets.md#your-own-images).
+
+    Args:
+        root: the folder; image paths in the labels file are relative to it.
+        labels: the labels file (``.csv`` or ``.npz``), relative to ``root``.
+        symmetry: ``None``; a group name (``C<n>``, ``D<n>``, ``T``, ``O``, ``I``) for every image; or a group
+            per class name. Log likelihood and errors are then taken over every equivalent rotation.
+        val_fraction, test_fraction: shares of the images drawn (with ``seed``) into validation and test
+            when the labels have no ``split`` column.
+        label: the training label among an image's equivalent rotations (as SYMSOL's: ``random``,
+            ``first``, ``all``).
+        image_size, batch_size, num_workers, pin_memory, multiprocessing_context, on_corrupt, seed: as
+            :class:`SymsolDataModule`'s.
+    """
+
+    def __init__(
+        self,
+        root: str,
+        labels: str = "labels.csv",
+        symmetry: str | dict | None = None,
+        val_fraction: float = 0.1,
+        test_fraction: float = 0.1,
+        label: str = "random",
+        image_size: int = 224,
+        batch_size: int = 64,
+        num_workers: int | str | None = 0,
+        pin_memory: bool = False,
+        seed: int = 0,
+        on_corrupt: str = "fail",
+        multiprocessing_context: str | None = None,
+    ):
+        from image2sphere.data.folder import read_labels, symmetry_groups
+
+        super().__init__()
+        self.root = Path(root)
+        if not self.root.is_dir():
+            raise missing_dataset_error(
+                "your images",
+                self.root,
+                f"a folder of images and its labels file ({labels})",
+                "your own data (python -m image2sphere.data.fixtures ROOT writes an example into ROOT/my_poses)",
+                "dataset.root",
+                "docs/datasets.md#your-own-images",
+            )
+        for key, value in (("val_fraction", val_fraction), ("test_fraction", test_fraction)):
+            if check_number(f"dataset.{key}", value, 0.0) >= 1:
+                raise ConfigError(f"dataset.{key} must be a share in [0, 1), got {value!r}")
+        if val_fraction + test_fraction >= 1:
+            raise ConfigError(
+                f"dataset.val_fraction + dataset.test_fraction = {val_fraction + test_fraction:g} leaves no "
+                "training images"
+            )
+        if label not in LABEL_MODES:
+            raise ConfigError(f"dataset.label must be one of {LABEL_MODES}, got {label!r}")
+        check_int("dataset.batch_size", batch_size, 1)
+        self.labels_file = self.root / labels
+        self.table = read_labels(self.labels_file)
+        self.class_names = sorted(set(self.table.classes)) if self.table.classes is not None else [self.root.name]
+        symmetry = dict(symmetry) if hasattr(symmetry, "items") else symmetry  # a per-class mapping from the config
+        self.groups = symmetry_groups(symmetry, self.class_names, from_file=self.table.equivalent is not None)
+        self.val_fraction, self.test_fraction = float(val_fraction), float(test_fraction)
+        self.label, self.image_size, self.batch_size = label, int(image_size), int(batch_size)
+        self.num_workers = num_workers
+        self.multiprocessing_context = multiprocessing_context
+        self.pin_memory, self.seed = bool(pin_memory), int(seed)
+        self.on_corrupt = check_corrupt_policy(on_corrupt, "dataset.on_corrupt")
+        self.splits = self._split()
+        self._check_images()
+        self.data_train = self.data_val = self.data_test = None
+
+    def _split(self) -> dict[str, np.ndarray]:
+        """The rows of each split: the labels' ``split`` column, else a seeded draw of the fractions."""
+        n = len(self.table.paths)
+        if self.table.splits is not None:
+            column = np.asarray(self.table.splits)
+            splits = {s: np.flatnonzero(column == s) for s in ("train", "val", "test")}
+        else:
+            order = torch.randperm(n, generator=torch.Generator().manual_seed(stable_seed("folder", self.seed))).numpy()
+            n_val, n_test = round(self.val_fraction * n), round(self.test_fraction * n)
+            splits = {"val": np.sort(order[:n_val]), "test": np.sort(order[n_val : n_val + n_test]),
+                      "train": np.sort(order[n_val + n_test :])}  # fmt: skip
+        for name in ("train", "test"):
+            if not len(splits[name]):
+                how = "the labels' split column" if self.table.splits is not None else (
+                    f"dataset.{name}_fraction" if name == "test" else "the fractions")  # fmt: skip
+                raise ConfigError(f"{self.labels_file}: no {name} images ({how} of {n} images)")
+        return splits
+
+    def _check_images(self) -> None:
+        """Every image is there and its header reads, before anything is written: the first one that is not
+        is named with its row."""
+        from PIL import Image, UnidentifiedImageError
+
+        csv = self.labels_file.suffix.lower() == ".csv"
+        for i, path in enumerate(self.table.paths):
+            file = self.root / path
+            row = f"row {i + 2 if csv else i}"
+            if not file.is_file():
+                raise InputNotFoundError(f"{self.labels_file}, {row}: the image {file} does not exist")
+            try:
+                with Image.open(file) as image:
+                    image.size  # noqa: B018 - the header is read
+            except (UnidentifiedImageError, OSError) as e:
+                raise ConfigError(f"{self.labels_file}, {row}: the image {file} cannot be read ({e})") from None
+
+    def _dataset(self, split: str, train: bool):
+        from image2sphere.data.folder import FolderDataset, equivalent_sets
+
+        sets, counts = equivalent_sets(self.table, self.groups, self.class_names)
+        names = self.table.classes or [self.class_names[0]] * len(self.table.paths)
+        class_index = torch.tensor([self.class_names.index(c) for c in names])
+        return FolderDataset(self.root, self.table.paths, sets, counts, class_index, self.splits[split],
+                             label=self.label, return_all=not train, image_size=self.image_size, seed=self.seed,
+                             on_corrupt=self.on_corrupt)  # fmt: skip
+
+    def setup(self, stage: str | None = None) -> None:
+        if stage in (None, "fit", "validate") and self.data_train is None:
+            self.data_train = self._dataset("train", train=True)
+            self.data_val = self._dataset("val", train=False) if len(self.splits["val"]) else None
+            log.info("%s: %d training, %d validation, %d test images", self.labels_file,
+                     *(len(self.splits[s]) for s in ("train", "val", "test")))  # fmt: skip
+        if stage in (None, "test") and self.data_test is None:
+            self.data_test = self._dataset("test", train=False)

@@ -35,7 +35,7 @@ from image2sphere.data.loading import EpochDataset, EpochIndex
 from image2sphere.data.shapes import check_shape_list
 from image2sphere.data.symsol_labels import load_symsol_rotations
 
-__all__ = ["LABEL_MODES", "SymsolDataset", "shape_tuple"]
+__all__ = ["LABEL_MODES", "SymsolDataset", "rotation_fields", "shape_tuple"]
 
 log = logging.getLogger(__name__)
 
@@ -149,15 +149,24 @@ class SymsolDataset(EpochDataset):
             "index": torch.tensor(row),
         }
         rotations, count = self.rotations[c][row], int(self.counts[c][row])
-        if self.return_all or self.label == "all":
-            padded = rotations[:1].expand(self.max_m, 3, 3).clone()
-            padded[:count] = rotations[:count]
-            item["rotations"] = padded
-            item["mask"] = torch.arange(self.max_m) < count
-        else:
-            j = 0
-            if self.label == "random" and count > 1:
-                g = torch.Generator().manual_seed(stable_seed("label", self.seed, epoch, c, row))
-                j = int(torch.randint(count, (1,), generator=g))
-            item["rotation"] = rotations[j].clone()
+        item.update(
+            rotation_fields(rotations, count, self.max_m, self.label, self.return_all, (self.seed, epoch, c, row))
+        )
         return item
+
+
+def rotation_fields(rotations: torch.Tensor, count: int, max_m: int, label: str, return_all: bool,
+                    seed: tuple) -> dict[str, torch.Tensor]:  # fmt: skip
+    """An item's rotation fields from its ``count`` equivalent rotations ``rotations (>= count, 3, 3)`` (element
+    0 its label): the set ``rotations (max_m, 3, 3)`` padded with element 0, and ``mask (max_m,)``, for
+    evaluation (``return_all``) or ``label="all"``; else one ``rotation (3, 3)``, element 0 (``"first"``) or
+    one drawn with ``seed`` (its epoch in it: redrawn every epoch) for ``"random"``."""
+    if return_all or label == "all":
+        padded = rotations[:1].expand(max_m, 3, 3).clone()
+        padded[:count] = rotations[:count]
+        return {"rotations": padded, "mask": torch.arange(max_m) < count}
+    j = 0
+    if label == "random" and count > 1:
+        g = torch.Generator().manual_seed(stable_seed("label", *seed))
+        j = int(torch.randint(count, (1,), generator=g))
+    return {"rotation": rotations[j].clone()}

@@ -273,7 +273,9 @@ def test_save_figure_follows_the_extension(tmp_path):
         save_figure(fig, tmp_path / "f.foo")
     assert not (tmp_path / "f.foo").exists()
     before = (tmp_path / "b.jpg").read_bytes()
-    with pytest.raises(FileExistsError):
+    from image2sphere.checks import OutputExistsError
+
+    with pytest.raises(OutputExistsError, match=r"b.jpg already exists and is not overwritten"):  # a refusal
         save_figure(fig, tmp_path / "b.jpg")
     assert (tmp_path / "b.jpg").read_bytes() == before
     assert figure_format("x.Tif") == "tif"

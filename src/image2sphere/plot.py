@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from matplotlib.figure import Figure
 
-from image2sphere.checks import ConfigError
+from image2sphere.checks import ConfigError, OutputExistsError
 from image2sphere.distributions.base import PoseDistribution
 from image2sphere.so3.grid import so3_healpix_index_to_matrix
 
@@ -220,12 +220,16 @@ def figure_format(path: str | Path, key: str = "path") -> str:
 
 def save_figure(fig: Figure, path: str | Path, dpi: int = 120) -> Path:
     """Write ``fig`` in the format its extension names (:func:`figure_format`: ``.png``, ``.jpg``,
-    ``.pdf``, ``.svg``, ...). An existing file is never overwritten (``FileExistsError``); a file
-    that fails half-way is removed."""
+    ``.pdf``, ``.svg``, ...). An existing file is never overwritten (:class:`~image2sphere.checks.OutputExistsError`,
+    a ``FileExistsError``); a file that fails half-way is removed."""
     path = Path(path)
     fmt = figure_format(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "xb") as f:
+    try:
+        f = open(path, "xb")  # noqa: SIM115 - closed by the with block below
+    except FileExistsError:
+        raise OutputExistsError(f"{path} already exists and is not overwritten: choose another file name") from None
+    with f:
         try:
             fig.savefig(f, format=fmt, dpi=dpi)
         except BaseException:

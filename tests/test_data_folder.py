@@ -206,3 +206,33 @@ def test_a_corrupt_image_an_unknown_group_and_near_unit_quaternions(tmp_path, ca
     torch.testing.assert_close(torch.from_numpy(dm.table.rotations[0]), torch.eye(3))
     with pytest.raises(ConfigError, match=r"dataset.symmetry: 'X7' \(for 'ok'\) is not a group"):
         FolderDataModule(str(tmp_path / "ok"), symmetry="X7")
+
+
+# ------------------------------------------------------------------------------------------ the convention check
+def test_label_axes_follow_the_camera_frame_and_the_check_draws_once(tmp_path):
+    """Quick. ``axes_in_image``: under the identity the object's x axis points right, y up (toward row 0), z at
+    the viewer; a quarter turn about z takes x to where y was. On the fixture folder, whose discs are drawn
+    where each label's z axis points, the disc's centre is where the drawn z axis points. The command writes
+    its picture once and refuses to overwrite it, in one line."""
+    from PIL import Image
+
+    from image2sphere.data.fixtures.folder import write_folder
+    from image2sphere.data.folder import axes_in_image, main, read_labels
+
+    identity = axes_in_image(np.eye(3), 100)
+    np.testing.assert_allclose(identity, [[40, 0, 0], [0, -40, 0], [0, 0, 1]], atol=1e-12)
+    quarter = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])  # x_camera = R @ x_object: object x -> camera y
+    np.testing.assert_allclose(axes_in_image(quarter, 100)[0], [0, -40, 0], atol=1e-12)
+    root = write_folder(tmp_path / "my_poses", per_class=4, image_size=64)
+    table = read_labels(root / "labels.csv")
+    for path, R in zip(table.paths, table.rotations, strict=True):
+        pixels = np.asarray(Image.open(root / path).convert("L"), dtype=np.float64)
+        rows, cols = np.nonzero(pixels > 40)  # the disc (the background is 20)
+        dx, dy, _ = axes_in_image(R, 64)[2]
+        inside = (cols.mean() - 32, rows.mean() - 32)
+        if abs(dx) < 20 and abs(dy) < 20:  # a disc cut by the border has its centroid pulled inwards
+            np.testing.assert_allclose(inside, (dx / 0.8, dy / 0.8), atol=1.5, err_msg=path)
+    out = tmp_path / "axes.png"
+    assert main([str(root), "--out", str(out)]) == 0 and out.read_bytes()[:4] == b"\x89PNG"
+    before = out.read_bytes()
+    assert main([str(root), "--out", str(out)]) == 1 and out.read_bytes() == before

@@ -860,6 +860,13 @@ def check_preemption(argv, proc, args: list[str], ws: Workspace) -> None:
     assert command[:2] == ["-m", "src.train"] and {"trainer=ddp", "trainer.devices=2"} <= set(command), proc.stdout
 
 
+def check_folder_axes(argv, proc, args: list[str], ws: Workspace) -> None:
+    """``python -m image2sphere.data.folder <folder> --out <png>``: the picture of the labels' axes is written."""
+    assert proc.returncode == 0 and proc.stdout.startswith("wrote "), describe(argv, proc)
+    out = ws.root / args[args.index("--out") + 1]
+    assert out.read_bytes()[:4] == b"\x89PNG", describe(argv, proc)
+
+
 def check_fixtures(argv, proc, args: list[str], ws: Workspace) -> None:
     assert proc.returncode == 0, describe(argv, proc)
     root = ws.root / args[-1]
@@ -1177,6 +1184,7 @@ def test_documented_command(command: Command, fixtures_root, checkpoint_run, tmp
         "src.predict": check_predict,
         "image2sphere.data.verify": check_verify,
         "image2sphere.data.fixtures": check_fixtures,
+        "image2sphere.data.folder": check_folder_axes,
         "image2sphere.data.render": check_render,
         "src.tables": check_tables,
     }

@@ -314,3 +314,73 @@ class FolderDataset(EpochDataset):
         item.update(rotation_fields(self.sets[row], int(self.counts[row]), self.max_m, self.label, self.return_all,
                                     seed))  # fmt: skip
         return item
+
+
+# ------------------------------------------------------------------------------------------ the convention check
+def axes_in_image(R: np.ndarray, size: float) -> np.ndarray:
+    """Where the object's x, y and z axes point in an image of ``size`` pixels under ``R`` (``x_camera =
+    R @ x_object``, camera x to the right of the image, y up, z toward the viewer): ``(3, 3)``, row ``k`` the
+    pixel offset (column, row) of axis ``k``'s tip from the image centre at length ``0.4 size``, then its
+    camera z (> 0: toward the viewer)."""
+    length = 0.4 * size
+    axes = np.asarray(R, dtype=np.float64).T  # row k: column k of R, axis k in camera coordinates
+    return np.stack([length * axes[:, 0], -length * axes[:, 1], axes[:, 2]], axis=1)  # image rows run down
+
+
+def draw_label_axes(root: str | Path, labels: str = "labels.csv", images: int = 6, out: str | Path | None = None,
+                    ) -> Path:  # fmt: skip
+    """The first ``images`` images of a folder with their labels' object axes drawn on them (x red, y green,
+    z blue; solid toward the viewer, dashed away), into ``out`` (default ``<root>/<labels>_axes.png``; never
+    overwritten). Returns the file written."""
+    from matplotlib.figure import Figure
+
+    from image2sphere.plot import figure_format, save_figure
+
+    root = Path(root)
+    table = read_labels(root / labels)
+    out = Path(out) if out is not None else root / f"{Path(labels).stem}_axes.png"
+    figure_format(out, "--out")
+    n = min(int(images), len(table.paths))
+    fig = Figure(figsize=(2.4 * n, 2.6))
+    for i in range(n):
+        ax = fig.add_subplot(1, n, i + 1)
+        image = load_image(root / table.paths[i]).numpy()
+        h, w = image.shape[:2]
+        ax.imshow(image)
+        for (dx, dy, toward), colour, name in zip(axes_in_image(table.rotations[i], min(h, w)), "rgb", "xyz",
+                                                  strict=True):  # fmt: skip
+            style = "-" if toward >= 0 else "--"
+            ax.plot([w / 2, w / 2 + dx], [h / 2, h / 2 + dy], style, color=colour, linewidth=2)
+            ax.annotate(name, (w / 2 + 1.1 * dx, h / 2 + 1.1 * dy), color=colour, ha="center", va="center")
+        ax.set_title(Path(table.paths[i]).name, fontsize=8)
+        ax.set_axis_off()
+    return save_figure(fig, out)
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+    import sys
+
+    from image2sphere.checks import Refusal
+
+    parser = argparse.ArgumentParser(
+        prog="python -m image2sphere.data.folder",
+        description="Draw the labels' object axes on the first images of a folder (dataset=folder), to see "
+        "before training whether the rotations mean x_camera = R @ x_object (camera x right, y up, z toward you).",
+    )
+    parser.add_argument("root", help="the folder (dataset.root)")
+    parser.add_argument("--labels", default="labels.csv", help="the labels file, relative to the folder")
+    parser.add_argument("--images", type=int, default=6, help="how many images (the first of the file)")
+    parser.add_argument("--out", default=None, help="the picture to write (default <root>/<labels>_axes.png)")
+    args = parser.parse_args(argv)
+    try:
+        path = draw_label_axes(args.root, args.labels, args.images, args.out)
+    except Refusal as e:
+        print(f"Error: {e}", file=sys.stderr)
+        return 1
+    print(f"wrote {path}: x red, y green, z blue; solid toward the viewer, dashed away")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

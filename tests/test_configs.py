@@ -318,7 +318,12 @@ def test_i2s_original_is_i2s_with_the_original_codes_eight_choices(tmp_path):
 def test_every_encoder_instantiates(tmp_path, encoder):
     cfg = compose_cfg(tmp_path, [f"encoder={encoder}", "lmax=2"])
     net = instantiate(cfg.model.net)
-    assert net.encoder.depth == int(encoder.removeprefix("resnet"))
+    if encoder == "torchvision":  # its default model, at the run's image size
+        assert net.encoder.name == cfg.encoder.name and net.feature_size == net.encoder.feature_size(
+            cfg.dataset.image_size
+        )
+    else:
+        assert net.encoder.depth == int(encoder.removeprefix("resnet"))
     assert cfg.model.net.encoder.weights is None
 
 

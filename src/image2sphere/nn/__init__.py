@@ -3,7 +3,7 @@
 from image2sphere.nn.activation import SO3ReLU
 from image2sphere.nn.base import PoseNetwork
 from image2sphere.nn.classification_regression import BinDeltaRegression, SphericalRegression
-from image2sphere.nn.encoder import RESNET_DEPTHS, ResNetEncoder
+from image2sphere.nn.encoder import RESNET_DEPTHS, ResNetEncoder, TorchvisionEncoder
 from image2sphere.nn.heads import (
     BinghamNet,
     EulerBinsNet,
@@ -41,6 +41,7 @@ __all__ = [
     "FourierMLP",
     "HarmonicS2Projector",
     "ResNetEncoder",
+    "TorchvisionEncoder",
     "S2Conv",
     "SO3Conv",
     "SO3ReLU",

@@ -395,7 +395,8 @@ def protocol_settings(cfg: DictConfig) -> dict[str, str]:
     model, enc = cfg.get("model") or {}, cfg.get("encoder") or {}
     weights = enc.get("weights")
     return {
-        "encoder": f"ResNet-{enc.get('depth')}, {'weights ' + str(weights) if weights else 'random initialisation'}",
+        "encoder": f"{enc.get('name') or 'ResNet-' + str(enc.get('depth'))}, "
+        f"{'weights ' + str(weights) if weights else 'random initialisation'}",
         "optimizer": f"{_name(model.get('optimizer'))}({_kwargs(model.get('optimizer'))})",
         "epochs": str(OmegaConf.select(cfg, "trainer.max_epochs")),
         "scheduler": f"{_name(model.get('scheduler'), 'none')}({_kwargs(model.get('scheduler'))}), "

@@ -23,6 +23,7 @@ def _parser() -> Any:
     return OverridesParser.create()  # no config loader: keys and values only, no group listing
 
 
+@functools.lru_cache(maxsize=4096)  # a table reads the same runs' overrides once per setting it looks up
 def override_key(override: str) -> str:
     """The key or group a command-line override sets, as Hydra parses it: ``+a.b=1`` -> ``a.b``,
     ``dataset=symsol1`` -> ``dataset``, ``~trainer.devices`` -> ``trainer.devices``, ``dataset@data=x`` ->

@@ -653,6 +653,7 @@ class FolderDataModule(PoseDataModule):
         self.on_corrupt = check_corrupt_policy(on_corrupt, "dataset.on_corrupt")
         self.splits = self._split()
         self._check_images()
+        self._shared: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
         self.data_train = self.data_val = self.data_test = None
 
     def _split(self) -> dict[str, np.ndarray]:
@@ -678,10 +679,9 @@ class FolderDataModule(PoseDataModule):
         is named with its row."""
         from PIL import Image, UnidentifiedImageError
 
-        csv = self.labels_file.suffix.lower() == ".csv"
         for i, path in enumerate(self.table.paths):
             file = self.root / path
-            row = f"row {i + 2 if csv else i}"
+            row = f"row {self.table.row(i)}"
             if not file.is_file():
                 raise InputNotFoundError(f"{self.labels_file}, {row}: the image {file} does not exist")
             try:
@@ -690,14 +690,23 @@ class FolderDataModule(PoseDataModule):
             except (UnidentifiedImageError, OSError) as e:
                 raise ConfigError(f"{self.labels_file}, {row}: the image {file} cannot be read ({e})") from None
 
-    def _dataset(self, split: str, train: bool):
-        from image2sphere.data.folder import FolderDataset, equivalent_sets
+    def _targets(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Every image's equivalent rotations, their counts and its class index, built once and shared by the
+        splits' datasets."""
+        from image2sphere.data.folder import equivalent_sets, image_classes
 
-        sets, counts = equivalent_sets(self.table, self.groups, self.class_names)
-        names = self.table.classes or [self.class_names[0]] * len(self.table.paths)
-        class_index = torch.tensor([self.class_names.index(c) for c in names])
-        return FolderDataset(self.root, self.table.paths, sets, counts, class_index, self.splits[split],
-                             label=self.label, return_all=not train, image_size=self.image_size, seed=self.seed,
+        if self._shared is None:
+            sets, counts = equivalent_sets(self.table, self.groups, self.class_names)
+            index = {name: c for c, name in enumerate(self.class_names)}
+            class_index = torch.tensor([index[name] for name in image_classes(self.table, self.class_names)])
+            self._shared = (sets, counts, class_index)
+        return self._shared
+
+    def _dataset(self, split: str, train: bool):
+        from image2sphere.data.folder import FolderDataset
+
+        return FolderDataset(self.root, self.table.paths, *self._targets(), self.splits[split], label=self.label,
+                             return_all=not train, image_size=self.image_size, seed=self.seed,
                              on_corrupt=self.on_corrupt)  # fmt: skip
 
     def setup(self, stage: str | None = None) -> None:

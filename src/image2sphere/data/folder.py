@@ -54,13 +54,23 @@ class FolderLabels:
     ``paths`` (relative to the folder), ``rotations`` float32 ``(N, 3, 3)``, ``classes`` (a name per image,
     ``None`` without a class column), ``splits`` (``train``/``val``/``test`` per image, ``None`` without a
     split column) and ``equivalent`` float32 ``(N, M, 3, 3)`` NaN-padded (``None``: one rotation per image
-    unless a symmetry group is given)."""
+    unless a symmetry group is given). ``first_row``: how the file counts image 0 in messages (a CSV's line 2,
+    below its header; an NPZ's index 0)."""
 
     paths: list[str]
     rotations: np.ndarray
     classes: list[str] | None
     splits: list[str] | None
     equivalent: np.ndarray | None = None
+    first_row: int = 0
+
+    def row(self, i: int) -> int:
+        """Image ``i``'s row as the file counts it (what messages name)."""
+        return i + self.first_row
+
+
+#: a CSV's first image is on line 2, below the header
+CSV_FIRST_ROW = 2
 
 
 def _rows_error(source: Path, row: int | str, message: str) -> ConfigError:
@@ -125,19 +135,19 @@ def _read_csv(source: Path) -> FolderLabels:
         raise ConfigError(f"{source} has a header but no rows")
     numbers = np.empty((len(rows), len(names)))
     paths, classes, splits = [], [], []
-    for n, row in enumerate(rows, start=2):  # row 1 is the header
+    for n, row in enumerate(rows, start=CSV_FIRST_ROW):
         if len(row) != len(header):
             raise _rows_error(source, n, f"{len(row)} fields, the header has {len(header)}")
         paths.append(row[columns["image"]].strip())
         try:
-            numbers[n - 2] = [float(row[columns[c]]) for c in names]
+            numbers[n - CSV_FIRST_ROW] = [float(row[columns[c]]) for c in names]
         except ValueError:
             raise _rows_error(source, n, f"the rotation {[row[columns[c]] for c in names]} is not numbers") from None
         if "class" in columns:
             classes.append(row[columns["class"]].strip())
         if "split" in columns:
             splits.append(row[columns["split"]].strip())
-    line_numbers = list(range(2, len(rows) + 2))
+    line_numbers = list(range(CSV_FIRST_ROW, len(rows) + CSV_FIRST_ROW))
     if rotation_columns:
         R, near = _from_quaternions(numbers, _QUATERNION_COLUMNS[rotation_columns[0]], source, line_numbers)
     else:
@@ -146,7 +156,7 @@ def _read_csv(source: Path) -> FolderLabels:
         log.info("%s: %d of %d rotations were not exactly unit or orthonormal and were normalised", source, near,
                  len(R))  # fmt: skip
     return FolderLabels(paths, R.astype(np.float32), classes if "class" in columns else None,
-                        splits if "split" in columns else None)  # fmt: skip
+                        splits if "split" in columns else None, first_row=CSV_FIRST_ROW)  # fmt: skip
 
 
 def _read_npz(source: Path) -> FolderLabels:
@@ -214,9 +224,8 @@ def read_labels(source: str | Path) -> FolderLabels:
     if labels.splits is not None:
         unknown = sorted(set(labels.splits) - set(SPLITS))
         if unknown:
-            row = labels.splits.index(unknown[0])
-            raise _rows_error(source, row + 2 if source.suffix.lower() == ".csv" else row,
-                              f"split {unknown[0]!r} is none of {', '.join(SPLITS)}")  # fmt: skip
+            row = labels.row(labels.splits.index(unknown[0]))
+            raise _rows_error(source, row, f"split {unknown[0]!r} is none of {', '.join(SPLITS)}")
     return labels
 
 
@@ -245,6 +254,11 @@ def symmetry_groups(
     return groups
 
 
+def image_classes(labels: FolderLabels, class_names: Sequence[str]) -> list[str]:
+    """Each image's class name: the labels' class column, or the one class of a file without it."""
+    return labels.classes if labels.classes is not None else [class_names[0]] * len(labels.paths)
+
+
 def equivalent_sets(
     labels: FolderLabels, groups: Mapping[str, torch.Tensor] | None, class_names: Sequence[str]
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -259,7 +273,7 @@ def equivalent_sets(
     if not groups:
         return R[:, None].clone(), torch.ones(len(R), dtype=torch.long)
     largest = max(len(g) for g in groups.values())
-    names = labels.classes or [class_names[0]] * len(R)
+    names = image_classes(labels, class_names)
     sets = R[:, None].expand(len(R), largest, 3, 3).clone()
     counts = torch.ones(len(R), dtype=torch.long)
     for i, name in enumerate(names):

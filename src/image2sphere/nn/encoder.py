@@ -157,9 +157,10 @@ class TorchvisionEncoder(nn.Module):
             del net.heads
         else:
             self.body = net.features
-        self._sizes: dict[tuple[int, int], tuple[int, int]] = {}
-        probe = int(image_size) if image_size is not None else 224
-        self.out_channels = int(self._probe((probe, probe))[0])
+        probe = (int(image_size),) * 2 if image_size is not None else (224, 224)
+        channels, *size = self._probe(probe)
+        self.out_channels = int(channels)
+        self._sizes: dict[tuple[int, int], tuple[int, int]] = {probe: tuple(size)}  # the sizes measured
 
     @torch.no_grad()
     def _probe(self, size: tuple[int, int]) -> tuple[int, int, int]:

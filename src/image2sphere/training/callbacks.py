@@ -23,7 +23,7 @@ from lightning.fabric.utilities.apply_func import move_data_to_device
 from torch.optim.swa_utils import update_bn
 from torch.utils.data import DataLoader
 
-from image2sphere.checks import ConfigError
+from image2sphere.checks import ConfigError, check_int
 from image2sphere.data.loading import EpochShuffleSampler
 
 __all__ = ["BatchNormStatistics", "NoteLoopStart", "SO3PlotCallback", "recompute_batchnorm_statistics"]
@@ -134,11 +134,7 @@ class BatchNormStatistics(pl.Callback):
     """
 
     def __init__(self, num_batches: int = BATCHNORM_BATCHES):
-        if isinstance(num_batches, bool) or not isinstance(num_batches, int) or num_batches < 1:
-            raise ConfigError(
-                f"callbacks.batchnorm_statistics.num_batches must be an integer >= 1, got {num_batches!r}"
-            )
-        self.num_batches = num_batches
+        self.num_batches = check_int("callbacks.batchnorm_statistics.num_batches", num_batches, 1)
         self._done_at: int | None = None  # the global step whose weights the statistics describe
         self._warned = False
 
